@@ -1,0 +1,27 @@
+# Two commands on a fresh machine with Python 3.11+:
+#   make demo   -- the main job: the demo on the simulated rig
+#   make test   -- the test suite (and lint)
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+
+.PHONY: demo test lint bench clean
+
+$(BIN)/activate: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test,figures]'
+	touch $(BIN)/activate
+
+demo: $(BIN)/activate
+	$(BIN)/multislit demo --out demo-output
+
+test: $(BIN)/activate
+	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/python -m pytest -q
+
+bench: $(BIN)/activate
+	$(BIN)/python benchmarks/bench_speed.py
+
+clean:
+	rm -rf $(VENV) demo-output .pytest_cache

@@ -1,0 +1,296 @@
+"""The capture folder, format ``multislit-capture/1`` (see ``docs/capture-format.md``).
+
+::
+
+    <capture>/
+      rig.json                {"format": "multislit-capture/1", "image_size": [W, H], "num_slits": N}
+      target.json             markers, faces, optional slit_points (world = target frame, mm)
+      calibration/markers.png target, lasers off
+      calibration/slits.png   same pose, lasers on
+      reference/*.png         >= 2 flat-board images at different distances, lasers on
+      scans/*.png             measurement images, lasers on
+
+Readers ignore keys and files they do not know and raise :class:`CaptureError` naming the file
+and the problem for anything missing or malformed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import CaptureError
+
+FORMAT = "multislit-capture/1"
+MIN_REFERENCES = 2
+
+
+# --------------------------------------------------------------------------- images
+def read_image(path: str | Path, expected_size: tuple[int, int] | None = None) -> NDArray:
+    """Read a grayscale 8- or 16-bit PNG.
+
+    Parameters
+    ----------
+    path : path of the image
+    expected_size : (W, H) px, optional; a different size is an error
+
+    Returns
+    -------
+    image : (H, W) uint8 or uint16
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise CaptureError(f"image not found: {p}")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CaptureError(f"cannot read image {p}: not a valid PNG")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise CaptureError(f"image {p} has pixel type {img.dtype}; expected 8- or 16-bit grayscale")
+    if expected_size is not None:
+        w, h = expected_size
+        if img.shape != (h, w):
+            raise CaptureError(
+                f"image {p} is {img.shape[1]}x{img.shape[0]} px but rig.json says image_size "
+                f"{w}x{h}; all images of a capture must have the rig's size"
+            )
+    return img
+
+
+def write_image(path: str | Path, image: NDArray) -> None:
+    """Write a (H, W) uint8 or uint16 image as PNG, creating folders as needed."""
+    img = np.asarray(image)
+    if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
+        raise CaptureError(f"write_image needs a (H, W) uint8/uint16 array, got {img.dtype} {img.shape}")
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(p), img):
+        raise CaptureError(f"cannot write image {p}")
+
+
+# --------------------------------------------------------------------------- target
+def _vec(v: Any, n: int, where: str) -> tuple[float, ...]:
+    try:
+        out = tuple(float(x) for x in v)
+    except (TypeError, ValueError):
+        raise CaptureError(f"{where} must be a list of {n} numbers, got {v!r}") from None
+    if len(out) != n or not all(math.isfinite(x) for x in out):
+        raise CaptureError(f"{where} must be a list of {n} finite numbers, got {v!r}")
+    return out
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A 2x2 checker marker: ``xyz`` (mm, target frame) is its centre corner."""
+
+    id: str
+    xyz: tuple[float, float, float]
+    uv_hint: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Face:
+    """A flat face of the target: unit normal plane n.X + d = 0 and its convex outline (mm)."""
+
+    id: str
+    plane: tuple[float, float, float, float]
+    polygon: tuple[tuple[float, float, float], ...]
+
+
+@dataclass(frozen=True)
+class SlitPoint:
+    """A hand reading: a point on slit ``slit`` at world ``xyz`` (mm) seen at ``uv`` (px)."""
+
+    slit: int
+    xyz: tuple[float, float, float]
+    uv: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Target:
+    """The standard object of ``target.json``."""
+
+    markers: tuple[Marker, ...]
+    faces: tuple[Face, ...]
+    slit_points: tuple[SlitPoint, ...] = ()
+
+    @property
+    def marker_xyz(self) -> NDArray[np.float64]:
+        """(M, 3) float64, mm, target frame."""
+        return np.array([m.xyz for m in self.markers], dtype=float).reshape(-1, 3)
+
+    @property
+    def marker_hints(self) -> NDArray[np.float64]:
+        """(M, 2) float64, px."""
+        return np.array([m.uv_hint for m in self.markers], dtype=float).reshape(-1, 2)
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "markers": [
+                {"id": m.id, "xyz": list(m.xyz), "uv_hint": list(m.uv_hint)} for m in self.markers
+            ],
+            "faces": [
+                {"id": f.id, "plane": list(f.plane), "polygon": [list(p) for p in f.polygon]}
+                for f in self.faces
+            ],
+        }
+        if self.slit_points:
+            d["slit_points"] = [
+                {"slit": s.slit, "xyz": list(s.xyz), "uv": list(s.uv)} for s in self.slit_points
+            ]
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1)
+
+    @classmethod
+    def from_dict(cls, d: Any, num_slits: int | None = None, where: str = "target.json") -> Target:
+        if not isinstance(d, dict):
+            raise CaptureError(f"{where}: expected a JSON object")
+        markers = []
+        seen: set[str] = set()
+        for i, m in enumerate(d.get("markers") or []):
+            w = f"{where}: markers[{i}]"
+            if not isinstance(m, dict) or "id" not in m or "xyz" not in m or "uv_hint" not in m:
+                raise CaptureError(f"{w} needs 'id', 'xyz' and 'uv_hint'")
+            mid = str(m["id"])
+            if mid in seen:
+                raise CaptureError(f"{w}: duplicate marker id {mid!r}")
+            seen.add(mid)
+            markers.append(Marker(mid, _vec(m["xyz"], 3, f"{w}.xyz"), _vec(m["uv_hint"], 2, f"{w}.uv_hint")))
+        if "markers" not in d:
+            raise CaptureError(f"{where}: missing 'markers' (the checker markers for camera calibration)")
+        faces = []
+        for i, f in enumerate(d.get("faces") or []):
+            w = f"{where}: faces[{i}]"
+            if not isinstance(f, dict) or "plane" not in f or "polygon" not in f:
+                raise CaptureError(f"{w} needs 'plane' and 'polygon'")
+            plane = np.array(_vec(f["plane"], 4, f"{w}.plane"))
+            nn = np.linalg.norm(plane[:3])
+            if nn < 1e-9:
+                raise CaptureError(f"{w}.plane has a zero normal")
+            plane = plane / nn
+            poly = f["polygon"]
+            if not isinstance(poly, list) or len(poly) < 3:
+                raise CaptureError(f"{w}.polygon needs >= 3 vertices")
+            verts = tuple(_vec(p, 3, f"{w}.polygon[{j}]") for j, p in enumerate(poly))
+            off = np.abs(np.array(verts) @ plane[:3] + plane[3]).max()
+            if off > 1.0:
+                raise CaptureError(f"{w}: polygon vertices lie up to {off:.2f} mm off the face's plane")
+            faces.append(Face(str(f.get("id", f"F{i + 1}")), tuple(plane.tolist()), verts))
+        slit_points = []
+        for i, s in enumerate(d.get("slit_points") or []):
+            w = f"{where}: slit_points[{i}]"
+            if not isinstance(s, dict) or not {"slit", "xyz", "uv"} <= set(s):
+                raise CaptureError(f"{w} needs 'slit', 'xyz' and 'uv'")
+            k = s["slit"]
+            if not isinstance(k, int) or isinstance(k, bool):
+                raise CaptureError(f"{w}.slit must be an integer slit number, got {k!r}")
+            if num_slits is not None and not 0 <= k < num_slits:
+                raise CaptureError(
+                    f"{w}.slit is {k}, but the rig has slits 0..{num_slits - 1}; fix the reading"
+                )
+            slit_points.append(SlitPoint(k, _vec(s["xyz"], 3, f"{w}.xyz"), _vec(s["uv"], 2, f"{w}.uv")))
+        return cls(tuple(markers), tuple(faces), tuple(slit_points))
+
+
+# --------------------------------------------------------------------------- capture
+@dataclass(frozen=True)
+class Capture:
+    """An opened, validated capture folder. Images are read on demand with :meth:`image`."""
+
+    root: Path
+    image_size: tuple[int, int]
+    num_slits: int
+    rig: dict[str, Any]
+    target: Target | None
+    references: tuple[Path, ...]
+    scans: tuple[Path, ...]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def markers_image(self) -> Path:
+        return self.root / "calibration" / "markers.png"
+
+    @property
+    def slits_image(self) -> Path:
+        return self.root / "calibration" / "slits.png"
+
+    def image(self, path: str | Path) -> NDArray:
+        """Read one of this capture's images (any path), checking its size against rig.json."""
+        return read_image(path, self.image_size)
+
+    @classmethod
+    def open(cls, root: str | Path, require_target: bool = True) -> Capture:
+        """Open and validate a capture folder.
+
+        Parameters
+        ----------
+        root : path of the capture folder
+        require_target : bool
+            When False a missing target.json is allowed (scanning with an existing calibration).
+        """
+        root = Path(root)
+        if not root.is_dir():
+            raise CaptureError(f"capture folder not found: {root}")
+        rig = _read_json(root / "rig.json")
+        if not isinstance(rig, dict):
+            raise CaptureError(f"{root / 'rig.json'}: expected a JSON object")
+        fmt = rig.get("format")
+        if fmt != FORMAT:
+            raise CaptureError(
+                f"{root / 'rig.json'}: 'format' is {fmt!r}; this reader understands {FORMAT!r}"
+            )
+        size = rig.get("image_size")
+        if (
+            not isinstance(size, list)
+            or len(size) != 2
+            or not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in size)
+        ):
+            raise CaptureError(f"{root / 'rig.json'}: 'image_size' must be [W, H] in px, got {size!r}")
+        n = rig.get("num_slits")
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+            raise CaptureError(f"{root / 'rig.json'}: 'num_slits' must be a positive integer, got {n!r}")
+        target = None
+        tpath = root / "target.json"
+        if tpath.exists() or require_target:
+            target = Target.from_dict(_read_json(tpath), num_slits=n, where=str(tpath))
+        refs = tuple(sorted((root / "reference").glob("*.png")))
+        if len(refs) < MIN_REFERENCES:
+            raise CaptureError(
+                f"{root / 'reference'}: found {len(refs)} reference image(s); the method needs >= "
+                f"{MIN_REFERENCES} images of a flat board at different distances"
+            )
+        scans = tuple(sorted((root / "scans").glob("*.png")))
+        return cls(root, (size[0], size[1]), n, rig, target, refs, scans)
+
+
+def _read_json(path: Path) -> Any:
+    if not path.is_file():
+        raise CaptureError(f"missing file: {path}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise CaptureError(f"{path} is not valid JSON: {exc}") from None
+
+
+def write_rig_json(root: str | Path, image_size: tuple[int, int], num_slits: int, **extra: Any) -> Path:
+    """Write ``rig.json`` of format version 1 (extra keys are kept)."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    d = {"format": FORMAT, "image_size": [int(image_size[0]), int(image_size[1])], "num_slits": int(num_slits)}
+    d.update(extra)
+    p = root / "rig.json"
+    p.write_text(json.dumps(d, indent=1))
+    return p

@@ -1,0 +1,430 @@
+"""Camera models, planes and rays: the geometry every stage shares.
+
+Conventions (the capture format's): units mm and px; pixel (u, v) with u right, v down and
+(0, 0) the centre of the top-left pixel (OpenCV's convention). World frame = target frame.
+The camera frame is OpenCV's: x right, y down, z forward; ``X_cam = R @ X_world + t``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import MultislitError
+
+F64 = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- validation
+def as_points(a: ArrayLike, dim: int, name: str) -> F64:
+    """Return ``a`` as a C-contiguous (N, dim) float64 array, or raise naming ``name``.
+
+    A single point of shape (dim,) is accepted and returned as (1, dim).
+    """
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim == 1 and arr.shape[0] == dim:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        raise MultislitError(f"{name} must have shape (N, {dim}), got {np.shape(a)}")
+    return np.ascontiguousarray(arr)
+
+
+def rotation_from_rvec(rvec: ArrayLike) -> F64:
+    """Rodrigues vector (3,) -> rotation matrix (3, 3)."""
+    r = np.asarray(rvec, dtype=np.float64).reshape(3)
+    theta = float(np.linalg.norm(r))
+    if theta < 1e-15:
+        return np.eye(3)
+    k = r / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * (kx @ kx)
+
+
+def rvec_from_rotation(R: ArrayLike) -> F64:
+    """Rotation matrix (3, 3) -> Rodrigues vector (3,)."""
+    R = np.asarray(R, dtype=np.float64)
+    cos = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
+    theta = np.arccos(cos)
+    if theta < 1e-12:
+        return np.zeros(3)
+    if np.pi - theta < 1e-6:
+        # near 180 degrees: axis from the symmetric part
+        M = (R + np.eye(3)) / 2
+        k = np.sqrt(np.clip(np.diag(M), 0, None))
+        i = int(np.argmax(k))
+        k = M[:, i] / np.sqrt(M[i, i])
+        return k / np.linalg.norm(k) * theta
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(theta))
+    return w * theta
+
+
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, -1.0, 0.0)) -> F64:
+    """Rotation R (world -> device) for a device at ``eye`` whose z axis points at ``target``.
+
+    The device frame is OpenCV-like: z forward, y roughly along ``up`` negated (down), x right.
+    """
+    eye = np.asarray(eye, float)
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    down = -np.asarray(up, float)
+    x = np.cross(down, z)
+    n = np.linalg.norm(x)
+    if n < 1e-9:
+        raise MultislitError("look_at: the up vector is parallel to the viewing direction")
+    x /= n
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+# --------------------------------------------------------------------------- cameras
+class Camera(Protocol):
+    """What triangulation and the simulator need of any camera model."""
+
+    image_size: tuple[int, int]
+
+    def project(self, points: ArrayLike) -> F64: ...
+
+    def rays(self, uv: ArrayLike) -> tuple[F64, F64]: ...
+
+
+def _distort(xy: F64, dist: F64) -> F64:
+    k1, k2, p1, p2 = dist
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=1)
+
+
+def _undistort(xyd: F64, dist: F64, iterations: int = 20) -> F64:
+    """Invert :func:`_distort` by Newton's method (vectorised); exact to ~1e-12 for sane lenses."""
+    k1, k2, p1, p2 = dist
+    if not np.any(dist):
+        return xyd.copy()
+    xy = xyd.copy()
+    for _ in range(iterations):
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 * r2
+        drad = 2 * k1 + 4 * k2 * r2  # d(radial)/d(r2) * 2
+        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xyd[:, 0]
+        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - xyd[:, 1]
+        j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
+        j12 = x * y * drad + 2 * p1 * x + 2 * p2 * y
+        j21 = x * y * drad + 2 * p1 * x + 2 * p2 * y
+        j22 = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
+        det = j11 * j22 - j12 * j21
+        dx = (j22 * fx - j12 * fy) / det
+        dy = (-j21 * fx + j11 * fy) / det
+        xy[:, 0] -= dx
+        xy[:, 1] -= dy
+        if max(np.abs(dx).max(initial=0), np.abs(dy).max(initial=0)) < 1e-14:
+            break
+    return xy
+
+
+@dataclass(frozen=True, eq=False)
+class PinholeCamera:
+    """Pinhole camera with OpenCV's radial (k1, k2) and tangential (p1, p2) distortion.
+
+    Parameters
+    ----------
+    fx, fy : float, px
+        Focal lengths.
+    cx, cy : float, px
+        Principal point.
+    rvec, tvec : (3,) float, rad / mm
+        Pose, world -> camera: ``X_cam = R(rvec) @ X_world + tvec``.
+    dist : (4,) float
+        (k1, k2, p1, p2), OpenCV's model on normalised coordinates.
+    image_size : (W, H) int, px
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    rvec: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tvec: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    image_size: tuple[int, int] = (1280, 1024)
+    _R: F64 = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rvec", tuple(float(x) for x in self.rvec))
+        object.__setattr__(self, "tvec", tuple(float(x) for x in self.tvec))
+        object.__setattr__(self, "dist", tuple(float(x) for x in self.dist))
+        object.__setattr__(self, "image_size", (int(self.image_size[0]), int(self.image_size[1])))
+        if len(self.dist) != 4:
+            raise MultislitError(f"dist must be (k1, k2, p1, p2), got {self.dist}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise MultislitError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        object.__setattr__(self, "_R", rotation_from_rvec(self.rvec))
+
+    # -- matrices
+    @property
+    def K(self) -> F64:
+        """(3, 3) intrinsic matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @property
+    def R(self) -> F64:
+        """(3, 3) rotation world -> camera."""
+        return self._R.copy()
+
+    @property
+    def t(self) -> F64:
+        """(3,) translation world -> camera, mm."""
+        return np.array(self.tvec)
+
+    @property
+    def centre(self) -> F64:
+        """(3,) camera centre in the world frame, mm."""
+        return -self._R.T @ self.t
+
+    @property
+    def matrix(self) -> F64:
+        """(3, 4) projection matrix K [R | t] of the distortion-free part (the DLT's C)."""
+        return self.K @ np.hstack([self._R, self.t[:, None]])
+
+    @property
+    def dist_array(self) -> F64:
+        return np.array(self.dist)
+
+    # -- projection
+    def to_camera(self, points: ArrayLike) -> F64:
+        """World points (N, 3) mm -> camera-frame points (N, 3) mm."""
+        p = as_points(points, 3, "points")
+        return p @ self._R.T + self.t
+
+    def project(self, points: ArrayLike) -> F64:
+        """Project world points.
+
+        Parameters
+        ----------
+        points : (N, 3) float64, mm, world frame
+
+        Returns
+        -------
+        uv : (N, 2) float64, px. Points at or behind the camera give NaN.
+        """
+        pc = self.to_camera(points)
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = pc[:, :2] / z[:, None]
+        xy[z <= 1e-9] = np.nan
+        xyd = _distort(xy, self.dist_array)
+        return np.stack([self.fx * xyd[:, 0] + self.cx, self.fy * xyd[:, 1] + self.cy], axis=1)
+
+    def normalized(self, uv: ArrayLike) -> F64:
+        """Pixels (N, 2) -> undistorted normalised image coordinates (N, 2) (x/z, y/z)."""
+        p = as_points(uv, 2, "uv")
+        xyd = np.stack([(p[:, 0] - self.cx) / self.fx, (p[:, 1] - self.cy) / self.fy], axis=1)
+        return _undistort(xyd, self.dist_array)
+
+    def undistort_pixels(self, uv: ArrayLike) -> F64:
+        """Pixels (N, 2) -> pixels (N, 2) of the same camera without distortion."""
+        xy = self.normalized(uv)
+        return np.stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy], axis=1)
+
+    def rays(self, uv: ArrayLike) -> tuple[F64, F64]:
+        """Lines of sight through pixels.
+
+        Parameters
+        ----------
+        uv : (N, 2) float64, px
+
+        Returns
+        -------
+        origins : (N, 3) float64, mm, world frame (the camera centre)
+        directions : (N, 3) float64, unit, world frame
+        """
+        xy = self.normalized(uv)
+        d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        d = d_cam @ self._R  # R^T d for each row
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.broadcast_to(self.centre, d.shape).copy(), d
+
+    # -- serialisation
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "model": "pinhole",
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "rvec": list(self.rvec),
+            "tvec": list(self.tvec),
+            "dist": list(self.dist),
+            "image_size": list(self.image_size),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PinholeCamera:
+        try:
+            return cls(
+                fx=float(d["fx"]),
+                fy=float(d["fy"]),
+                cx=float(d["cx"]),
+                cy=float(d["cy"]),
+                rvec=tuple(d.get("rvec", (0, 0, 0))),
+                tvec=tuple(d.get("tvec", (0, 0, 0))),
+                dist=tuple(d.get("dist", (0, 0, 0, 0))),
+                image_size=tuple(d["image_size"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MultislitError(f"malformed pinhole camera: {exc!r}") from exc
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_json(cls, s: str) -> PinholeCamera:
+        return cls.from_dict(json.loads(s))
+
+
+@dataclass(frozen=True, eq=False)
+class MatrixCamera:
+    """The paper's camera: a 3x4 projection matrix C (eq. 1), no distortion.
+
+    Parameters
+    ----------
+    C : (3, 4) float64
+        Maps homogeneous world points (mm) to homogeneous pixels. Any scale.
+    image_size : (W, H) int, px
+    """
+
+    C: F64
+    image_size: tuple[int, int] = (1280, 1024)
+
+    def __post_init__(self) -> None:
+        C = np.asarray(self.C, dtype=np.float64)
+        if C.shape != (3, 4) or not np.all(np.isfinite(C)):
+            raise MultislitError(f"C must be a finite (3, 4) matrix, got shape {C.shape}")
+        if abs(np.linalg.det(C[:, :3])) < 1e-300:
+            raise MultislitError("C is degenerate: its left 3x3 block is singular")
+        object.__setattr__(self, "C", C)
+        object.__setattr__(self, "image_size", (int(self.image_size[0]), int(self.image_size[1])))
+
+    @property
+    def centre(self) -> F64:
+        """(3,) camera centre in the world frame, mm (the right null vector of C)."""
+        return -np.linalg.solve(self.C[:, :3], self.C[:, 3])
+
+    def project(self, points: ArrayLike) -> F64:
+        """World points (N, 3) mm -> pixels (N, 2) px."""
+        p = as_points(points, 3, "points")
+        h = p @ self.C[:, :3].T + self.C[:, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return h[:, :2] / h[:, 2:3]
+
+    def rays(self, uv: ArrayLike) -> tuple[F64, F64]:
+        """Lines of sight through pixels (N, 2) px: origins (N, 3) mm and unit directions (N, 3)."""
+        p = as_points(uv, 2, "uv")
+        h = np.concatenate([p, np.ones((len(p), 1))], axis=1)
+        d = np.linalg.solve(self.C[:, :3], h.T).T
+        # orient the rays forward: points in front have positive homogeneous scale
+        sign = np.sign(np.linalg.det(self.C[:, :3]))
+        d *= sign
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.broadcast_to(self.centre, d.shape).copy(), d
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model": "matrix", "C": self.C.tolist(), "image_size": list(self.image_size)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> MatrixCamera:
+        try:
+            return cls(C=np.array(d["C"], dtype=float), image_size=tuple(d["image_size"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MultislitError(f"malformed matrix camera: {exc!r}") from exc
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict())
+
+    @classmethod
+    def from_json(cls, s: str) -> MatrixCamera:
+        return cls.from_dict(json.loads(s))
+
+
+def camera_from_dict(d: dict[str, Any]) -> PinholeCamera | MatrixCamera:
+    """Load either camera model from its ``to_dict`` form (by its ``model`` key)."""
+    model = d.get("model")
+    if model == "pinhole":
+        return PinholeCamera.from_dict(d)
+    if model == "matrix":
+        return MatrixCamera.from_dict(d)
+    raise MultislitError(f"unknown camera model {model!r} (expected 'pinhole' or 'matrix')")
+
+
+# --------------------------------------------------------------------------- planes
+def normalize_planes(planes: ArrayLike) -> F64:
+    """Planes (N, 4) [nx, ny, nz, d] (n.X + d = 0) scaled to unit normals."""
+    p = as_points(planes, 4, "planes")
+    n = np.linalg.norm(p[:, :3], axis=1, keepdims=True)
+    if np.any(n < 1e-12):
+        raise MultislitError("planes must have non-zero normals")
+    return p / n
+
+
+def fit_plane(points: ArrayLike) -> tuple[F64, F64]:
+    """Total least squares plane through points.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, mm, N >= 3
+
+    Returns
+    -------
+    plane : (4,) float64, unit normal and offset, n.X + d = 0
+    residuals : (N,) float64, mm, signed distances of the points to the plane
+    """
+    p = as_points(points, 3, "points")
+    if len(p) < 3:
+        raise MultislitError(f"fit_plane needs >= 3 points, got {len(p)}")
+    c = p.mean(axis=0)
+    _, s, vt = np.linalg.svd(p - c, full_matrices=False)
+    if s[1] < 1e-9 * max(s[0], 1e-300):
+        raise MultislitError("fit_plane: the points are collinear, no unique plane")
+    n = vt[2]
+    plane = np.append(n, -n @ c)
+    return plane, p @ n + plane[3]
+
+
+def intersect_rays_planes(
+    origins: ArrayLike, directions: ArrayLike, planes: ArrayLike, min_cos: float = 0.0
+) -> tuple[F64, F64]:
+    """Intersect each ray with its own plane.
+
+    Parameters
+    ----------
+    origins, directions : (N, 3) float64, mm / unit
+    planes : (N, 4) float64, unit normals, n.X + d = 0 (or (4,) for one plane shared by all)
+    min_cos : float
+        Rays whose |cos| of the angle to the plane normal is below this are rejected (NaN).
+
+    Returns
+    -------
+    points : (N, 3) float64, mm (NaN where rejected or behind the origin)
+    t : (N,) float64, mm along the ray
+    """
+    o = as_points(origins, 3, "origins")
+    d = as_points(directions, 3, "directions")
+    pl = np.asarray(planes, dtype=np.float64)
+    if pl.ndim == 1:
+        pl = np.broadcast_to(pl, (len(o), 4))
+    pl = as_points(pl, 4, "planes")
+    n = pl[:, :3]
+    denom = np.einsum("ij,ij->i", n, d)
+    num = -(np.einsum("ij,ij->i", n, o) + pl[:, 3])
+    dn = np.linalg.norm(d, axis=1) * np.linalg.norm(n, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = num / denom
+        bad = (np.abs(denom) <= min_cos * dn) | (denom == 0) | (t < 0)
+    t = np.where(bad, np.nan, t)
+    return o + t[:, None] * d, t
