@@ -72,7 +72,9 @@ def write_image(path: str | Path, image: NDArray) -> None:
     """Write a (H, W) uint8 or uint16 image as PNG, creating folders as needed."""
     img = np.asarray(image)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
-        raise CaptureError(f"write_image needs a (H, W) uint8/uint16 array, got {img.dtype} {img.shape}")
+        raise CaptureError(
+            f"write_image needs a (H, W) uint8/uint16 array, got {img.dtype} {img.shape}"
+        )
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(p), img):
@@ -168,9 +170,13 @@ class Target:
             if mid in seen:
                 raise CaptureError(f"{w}: duplicate marker id {mid!r}")
             seen.add(mid)
-            markers.append(Marker(mid, _vec(m["xyz"], 3, f"{w}.xyz"), _vec(m["uv_hint"], 2, f"{w}.uv_hint")))
+            markers.append(
+                Marker(mid, _vec(m["xyz"], 3, f"{w}.xyz"), _vec(m["uv_hint"], 2, f"{w}.uv_hint"))
+            )
         if "markers" not in d:
-            raise CaptureError(f"{where}: missing 'markers' (the checker markers for camera calibration)")
+            raise CaptureError(
+                f"{where}: missing 'markers' (the checker markers for camera calibration)"
+            )
         faces = []
         for i, f in enumerate(d.get("faces") or []):
             w = f"{where}: faces[{i}]"
@@ -187,7 +193,9 @@ class Target:
             verts = tuple(_vec(p, 3, f"{w}.polygon[{j}]") for j, p in enumerate(poly))
             off = np.abs(np.array(verts) @ plane[:3] + plane[3]).max()
             if off > 1.0:
-                raise CaptureError(f"{w}: polygon vertices lie up to {off:.2f} mm off the face's plane")
+                raise CaptureError(
+                    f"{w}: polygon vertices lie up to {off:.2f} mm off the face's plane"
+                )
             faces.append(Face(str(f.get("id", f"F{i + 1}")), tuple(plane.tolist()), verts))
         slit_points = []
         for i, s in enumerate(d.get("slit_points") or []):
@@ -201,7 +209,9 @@ class Target:
                 raise CaptureError(
                     f"{w}.slit is {k}, but the rig has slits 0..{num_slits - 1}; fix the reading"
                 )
-            slit_points.append(SlitPoint(k, _vec(s["xyz"], 3, f"{w}.xyz"), _vec(s["uv"], 2, f"{w}.uv")))
+            slit_points.append(
+                SlitPoint(k, _vec(s["xyz"], 3, f"{w}.xyz"), _vec(s["uv"], 2, f"{w}.uv"))
+            )
         return cls(tuple(markers), tuple(faces), tuple(slit_points))
 
 
@@ -258,10 +268,14 @@ class Capture:
             or len(size) != 2
             or not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in size)
         ):
-            raise CaptureError(f"{root / 'rig.json'}: 'image_size' must be [W, H] in px, got {size!r}")
+            raise CaptureError(
+                f"{root / 'rig.json'}: 'image_size' must be [W, H] in px, got {size!r}"
+            )
         n = rig.get("num_slits")
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-            raise CaptureError(f"{root / 'rig.json'}: 'num_slits' must be a positive integer, got {n!r}")
+            raise CaptureError(
+                f"{root / 'rig.json'}: 'num_slits' must be a positive integer, got {n!r}"
+            )
         target = None
         tpath = root / "target.json"
         if tpath.exists() or require_target:
@@ -285,11 +299,17 @@ def _read_json(path: Path) -> Any:
         raise CaptureError(f"{path} is not valid JSON: {exc}") from None
 
 
-def write_rig_json(root: str | Path, image_size: tuple[int, int], num_slits: int, **extra: Any) -> Path:
+def write_rig_json(
+    root: str | Path, image_size: tuple[int, int], num_slits: int, **extra: Any
+) -> Path:
     """Write ``rig.json`` of format version 1 (extra keys are kept)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    d = {"format": FORMAT, "image_size": [int(image_size[0]), int(image_size[1])], "num_slits": int(num_slits)}
+    d = {
+        "format": FORMAT,
+        "image_size": [int(image_size[0]), int(image_size[1])],
+        "num_slits": int(num_slits),
+    }
     d.update(extra)
     p = root / "rig.json"
     p.write_text(json.dumps(d, indent=1))

@@ -62,10 +62,11 @@ def rvec_from_rotation(R: ArrayLike) -> F64:
     return w * theta
 
 
-def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, -1.0, 0.0)) -> F64:
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 1.0, 0.0)) -> F64:
     """Rotation R (world -> device) for a device at ``eye`` whose z axis points at ``target``.
 
-    The device frame is OpenCV-like: z forward, y roughly along ``up`` negated (down), x right.
+    The device frame is OpenCV-like: z forward, y along ``up`` negated (down), x right; ``up``
+    is a world direction (default +Y, the world's up).
     """
     eye = np.asarray(eye, float)
     z = np.asarray(target, float) - eye

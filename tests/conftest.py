@@ -1,0 +1,47 @@
+"""Shared fixtures: small simulated scenes, built once per test session."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from multislit.sim.rig import RigSpec, SimulatedRig
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def small_spec() -> RigSpec:
+    """The default rig at half resolution (640x512): stripes and dots keep their pixel widths."""
+    return RigSpec().scaled(0.5)
+
+
+@pytest.fixture(scope="session")
+def clean_spec(small_spec: RigSpec) -> RigSpec:
+    """Half-size rig without noise or speckle and with a 16-bit sensor: for geometry checks."""
+    return replace(
+        small_spec,
+        sensor=replace(small_spec.sensor, noise=False, speckle_contrast=0.0, bit_depth=16),
+    )
+
+
+@pytest.fixture(scope="session")
+def small_rig(small_spec: RigSpec) -> SimulatedRig:
+    return SimulatedRig.build(small_spec)
+
+
+@pytest.fixture(scope="session")
+def small_capture(tmp_path_factory: pytest.TempPathFactory, small_spec: RigSpec) -> Path:
+    """A complete half-size simulated capture: holes plate and steps, seed 3."""
+    from multislit.sim.simulate import simulate_capture
+
+    out = tmp_path_factory.mktemp("capture") / "cap"
+    return simulate_capture(out, ["holes", "steps"], small_spec, seed=3)
+
+
+@pytest.fixture()
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)

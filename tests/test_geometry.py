@@ -1,0 +1,115 @@
+import numpy as np
+import pytest
+
+from multislit.errors import MultislitError
+from multislit.geometry import (
+    MatrixCamera,
+    PinholeCamera,
+    camera_from_dict,
+    fit_plane,
+    intersect_rays_planes,
+    look_at,
+    rotation_from_rvec,
+    rvec_from_rotation,
+)
+
+
+@pytest.fixture()
+def cam() -> PinholeCamera:
+    return PinholeCamera(
+        1800,
+        1790,
+        645,
+        508,
+        rvec=(0.1, -0.25, 0.03),
+        tvec=(20, -10, 1000),
+        dist=(-0.15, 0.08, 0.001, -0.0015),
+    )
+
+
+def test_projection_matches_opencv(cam, rng):
+    import cv2
+
+    X = rng.uniform(-300, 300, (200, 3))
+    ref, _ = cv2.projectPoints(X, np.array(cam.rvec), np.array(cam.tvec), cam.K, np.array(cam.dist))
+    assert np.abs(cam.project(X) - ref.reshape(-1, 2)).max() < 1e-9
+
+
+def test_rays_pass_through_points(cam, rng):
+    X = rng.uniform(-300, 300, (200, 3))
+    o, d = cam.rays(cam.project(X))
+    v = X - o
+    dist = np.linalg.norm(v - np.einsum("ij,ij->i", v, d)[:, None] * d, axis=1)
+    assert dist.max() < 1e-8
+    assert np.all(np.einsum("ij,ij->i", v, d) > 0), "rays must point forward"
+
+
+def test_undistort_inverts_distort(cam, rng):
+    uv = rng.uniform([0, 0], [1280, 1024], (500, 2))
+    und = cam.undistort_pixels(uv)
+    nodist = PinholeCamera(cam.fx, cam.fy, cam.cx, cam.cy)
+    # re-distort through a ray in the camera frame
+    xy = (und - [cam.cx, cam.cy]) / [cam.fx, cam.fy]
+    back = PinholeCamera(cam.fx, cam.fy, cam.cx, cam.cy, dist=cam.dist).project(
+        np.c_[xy, np.ones(len(xy))]
+    )
+    assert np.abs(back - uv).max() < 1e-8
+    assert np.abs(nodist.undistort_pixels(uv) - uv).max() < 1e-12
+
+
+def test_matrix_camera_agrees_with_pinhole(rng):
+    cam = PinholeCamera(1500, 1500, 600, 500, rvec=(0.2, 0.1, -0.1), tvec=(5, 5, 900))
+    mc = MatrixCamera(cam.matrix * -3.7)  # any scale, even negative
+    X = rng.uniform(-200, 200, (50, 3))
+    assert np.abs(mc.project(X) - cam.project(X)).max() < 1e-9
+    assert np.allclose(mc.centre, cam.centre)
+    o, d = mc.rays(cam.project(X))
+    assert np.all(np.einsum("ij,ij->i", X - o, d) > 0)
+
+
+def test_rotation_round_trip(rng):
+    for _ in range(20):
+        r = rng.normal(size=3)
+        r *= rng.uniform(0, 3.1) / np.linalg.norm(r)
+        R = rotation_from_rvec(r)
+        assert np.allclose(R @ R.T, np.eye(3))
+        assert np.allclose(rvec_from_rotation(R), r, atol=1e-9)
+
+
+def test_look_at_orientation():
+    R = look_at((0, 0, 1000), (0, 0, 0))
+    # world up (+Y) appears as image up (-y), world +X as image right
+    assert np.allclose(R @ [0, 1, 0], [0, -1, 0])
+    assert np.allclose(R @ [1, 0, 0], [1, 0, 0])
+    assert np.allclose(R @ [0, 0, -1], [0, 0, 1])
+
+
+def test_json_round_trip(cam):
+    c2 = camera_from_dict(cam.to_dict())
+    X = np.array([[10.0, 20, 30]])
+    assert np.allclose(c2.project(X), cam.project(X))
+    m = MatrixCamera(cam.matrix)
+    assert np.allclose(MatrixCamera.from_json(m.to_json()).C, m.C)
+    with pytest.raises(MultislitError, match="unknown camera model"):
+        camera_from_dict({"model": "fisheye"})
+
+
+def test_fit_plane_and_errors(rng):
+    n = np.array([0.2, -0.3, 0.93])
+    n /= np.linalg.norm(n)
+    pts = rng.uniform(-100, 100, (100, 3))
+    pts -= np.outer(pts @ n - 50.0, n)
+    plane, res = fit_plane(pts)
+    assert abs(abs(plane[:3] @ n) - 1) < 1e-12 and np.abs(res).max() < 1e-9
+    with pytest.raises(MultislitError, match="collinear"):
+        fit_plane(np.outer(np.arange(5.0), [1, 2, 3]))
+    with pytest.raises(MultislitError, match="points must have shape"):
+        fit_plane(np.zeros((4, 2)))
+
+
+def test_intersect_rays_rejects_grazing_rays():
+    o = np.zeros((2, 3))
+    d = np.array([[0, 0, 1.0], [1, 0, 1e-4]])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts, t = intersect_rays_planes(o, d, np.array([0, 0, 1.0, -500]), min_cos=0.05)
+    assert np.allclose(pts[0], [0, 0, 500]) and np.isnan(pts[1]).all()
