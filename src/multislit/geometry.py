@@ -296,7 +296,9 @@ class MatrixCamera:
     Parameters
     ----------
     C : (3, 4) float64
-        Maps homogeneous world points (mm) to homogeneous pixels. Any scale.
+        Maps homogeneous world points (mm) to homogeneous pixels, scaled so that points in
+        front of the camera get a positive homogeneous coordinate H_c (as ``calibrate_dlt``
+        returns it); the overall magnitude is free.
     image_size : (W, H) int, px
     """
 
@@ -328,10 +330,9 @@ class MatrixCamera:
         """Lines of sight through pixels (N, 2) px: origins (N, 3) mm and unit directions (N, 3)."""
         p = as_points(uv, 2, "uv")
         h = np.concatenate([p, np.ones((len(p), 1))], axis=1)
+        # convention: C is scaled so that points in front of the camera have H_c > 0 (eq. 1);
+        # then M^-1 (u, v, 1) points forward, whatever the handedness of the target frame
         d = np.linalg.solve(self.C[:, :3], h.T).T
-        # orient the rays forward: points in front have positive homogeneous scale
-        sign = np.sign(np.linalg.det(self.C[:, :3]))
-        d *= sign
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.centre, d.shape).copy(), d
 
