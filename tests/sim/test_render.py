@@ -164,3 +164,15 @@ def test_sensor_saturates_and_quantises(small_rig):
     spec = replace(small_rig.spec, slits=replace(small_rig.spec.slits, power=5.0))
     img = render(SimulatedRig.build(spec), reference_board(780), np.random.default_rng(0)).image
     assert img.dtype == np.uint8 and img.max() == 255 and (img == 255).sum() > 1000
+
+
+@pytest.mark.parametrize("name", sorted(__import__("multislit.sim.scene", fromlist=["SCENES"]).SCENES))
+def test_every_scene_renders_with_slits(name):
+    from multislit.sim.rig import RigSpec
+    from multislit.sim.scene import make_scene
+
+    rig = SimulatedRig.build(RigSpec().scaled(0.25))
+    r = render(rig, make_scene(name), np.random.default_rng(0))
+    assert r.image.shape == (256, 320)
+    assert (r.slit >= 0).sum() > 500, "slits must fall on every scene"
+    assert len(np.unique(r.slit[r.slit >= 0])) >= 15

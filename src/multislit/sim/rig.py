@@ -35,7 +35,7 @@ class CameraSpec:
 class SlitProjectorSpec:
     num_slits: int = 25
     wavelength_nm: float = 650.0
-    pitch_um: float = 30.0  # grating period: orders m spaced by ~lambda/pitch rad
+    pitch_um: float = 34.0  # grating period: orders m spaced by ~lambda/pitch rad
     stripe_sigma_mrad: float = 0.8  # Gaussian sheet profile across the slit
     fan_half_deg: float = 22.0  # half opening of each sheet along the slit
     power: float = 0.85  # peak radiance on a white surface at 900 mm, in full-scale units

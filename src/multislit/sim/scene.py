@@ -56,10 +56,9 @@ def noise_texture(
     rng: np.random.Generator, scale_mm: float, lo: float, hi: float, n: int = 96
 ) -> Texture:
     """A smooth random albedo (printed texture), periodic over ``n * scale_mm`` mm."""
-    import cv2
+    from scipy.ndimage import gaussian_filter
 
-    g = rng.random((n, n)).astype(np.float32)
-    g = cv2.GaussianBlur(g, (0, 0), 1.2, borderType=cv2.BORDER_WRAP)
+    g = gaussian_filter(rng.random((n, n)), 1.2, mode="wrap")
     g = (g - g.min()) / max(float(g.max() - g.min()), 1e-9)
 
     def tex(a: F64, b: F64) -> F64:

@@ -126,6 +126,16 @@ def simulate_capture(
             )
         if name == "calibration/slits":
             rendered_slits = r
+        if name.startswith("reference/"):
+            seen = np.unique(r.slit[r.slit >= 0])
+            missing = sorted(set(range(rig.projector.num_slits)) - set(seen.tolist()))
+            if missing:
+                raise MultislitError(
+                    f"rig design: slit(s) {missing} do not reach the camera's view on the "
+                    f"reference board {name}; every reference image must show all slits: "
+                    f"narrow the fan (larger slits.pitch_um), aim camera and projector closer, "
+                    f"or change reference_distances"
+                )
     if progress:
         progress(len(jobs), len(jobs), "done")
 
