@@ -1,0 +1,310 @@
+"""Tests of multislit.slits on synthetic images rendered here (no simulator needed)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from multislit.errors import MultislitError
+from multislit.slits import (
+    CENTRE_METHODS,
+    FWHM_PER_SIGMA,
+    SlitExtraction,
+    estimate_stripe_width,
+    extract_slits,
+    find_stripe_centres,
+    link_segments,
+    separate,
+)
+
+
+# --------------------------------------------------------------------------- renderer
+@dataclass
+class Truth:
+    u0: np.ndarray  # (S,) centre column at the middle row
+    tilt: np.ndarray  # (S,) du/dv
+    curv: np.ndarray  # (S,) d2u/dv2 / 2
+    jump_row: int | None  # stripe 0 jumps by `jump` px at this row
+    jump: float
+    dots: np.ndarray  # (D, 2) dot centres (u, v)
+    h: int
+
+    def centre(self, v: np.ndarray) -> np.ndarray:
+        """(S, len(v)) true stripe centre columns at rows v."""
+        dv = np.asarray(v, float)[None, :] - self.h / 2
+        u = self.u0[:, None] + self.tilt[:, None] * dv + self.curv[:, None] * dv**2
+        if self.jump_row is not None:
+            u[0] += np.where(np.asarray(v) >= self.jump_row, self.jump, 0.0)
+        return u
+
+
+def _pixel_gauss(x: np.ndarray, centre: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian of unit peak integrated over unit pixels centred at x (broadcasting)."""
+    s = sigma * np.sqrt(2.0)
+    a = (x - 0.5 - centre) / s
+    b = (x + 0.5 - centre) / s
+    return 0.5 * (erf(b) - erf(a)) * sigma * np.sqrt(2 * np.pi)
+
+
+def render(
+    h: int = 256,
+    w: int = 320,
+    n_stripes: int = 8,
+    sigma: float = 1.3,
+    amp: float = 150.0,
+    dot_sigma: float = 0.8,
+    dots_per_stripe: int = 60,
+    read_noise: float = 2.0,
+    gain: float = 0.05,
+    saturate: bool = False,
+    ambient: bool = True,
+    jump: float = 0.0,
+    seed: int = 0,
+) -> tuple[np.ndarray, Truth]:
+    """Render an 8-bit image: tilted/curved Gaussian stripes, dots along them, background.
+
+    Stripes: pixel-integrated Gaussian profiles (sigma px) along the rows at known sub-pixel
+    centres u(v) = u0 + tilt (v - h/2) + curv (v - h/2)^2. Dots: 2-D pixel-integrated Gaussians
+    (dot_sigma) scattered within +-6 px of a stripe. Background: ambient light with a vertical
+    and a horizontal albedo step and a smooth texture; the albedo multiplies the lasers too.
+    Noise: Gaussian read noise (DN) + shot noise of variance gain * signal, then 8-bit rounding
+    and clipping at 255 (saturate=True makes the stripes ~3x brighter than 255).
+    """
+    rng = np.random.default_rng(seed)
+    spacing = w / n_stripes
+    u0 = (np.arange(n_stripes) + 0.5) * spacing + rng.uniform(-0.5, 0.5, n_stripes)
+    tilt = rng.uniform(-0.04, 0.04, n_stripes)
+    curv = rng.uniform(-8e-5, 8e-5, n_stripes)
+    truth = Truth(u0, tilt, curv, h // 2 if jump else None, jump, np.empty((0, 2)), h)
+    vv = np.arange(h)
+    uu = np.arange(w, dtype=float)
+    centres = truth.centre(vv)  # (S, h)
+    a = amp * (3.0 if saturate else 1.0)
+    laser = np.zeros((h, w))
+    for k in range(n_stripes):
+        laser += a * _pixel_gauss(uu[None, :], centres[k][:, None], sigma)
+    du = rng.uniform(-6, 6, (n_stripes, dots_per_stripe))
+    dv = rng.uniform(0, h - 1, (n_stripes, dots_per_stripe))
+    cu = truth.centre(dv.ravel()).reshape(n_stripes, n_stripes, dots_per_stripe)
+    dot_u = np.array([cu[k, k] for k in range(n_stripes)]) + du
+    dots = np.stack([dot_u.ravel(), dv.ravel()], axis=1)
+    truth.dots = dots
+    dot_amp = rng.uniform(60, 120, len(dots))
+    for (x, y), ad in zip(dots, dot_amp, strict=True):
+        u_lo, u_hi = max(0, int(x) - 4), min(w, int(x) + 6)
+        v_lo, v_hi = max(0, int(y) - 4), min(h, int(y) + 6)
+        gu = _pixel_gauss(np.arange(u_lo, u_hi, dtype=float), x, dot_sigma)
+        gv = _pixel_gauss(np.arange(v_lo, v_hi, dtype=float), y, dot_sigma)
+        laser[v_lo:v_hi, u_lo:u_hi] += ad * gv[:, None] * gu[None, :]
+    if ambient:
+        albedo = np.ones((h, w))
+        albedo[:, int(0.6 * w) :] *= 1.5  # vertical albedo step
+        albedo[int(0.3 * h) :, :] *= 0.8  # horizontal albedo step
+        texture = (
+            1
+            + 0.2 * np.sin(2 * np.pi * uu / 37.0)[None, :] * np.sin(2 * np.pi * vv / 23.0)[:, None]
+        )
+        ambient_light = 40.0 * texture
+        signal = albedo * (laser + ambient_light)
+    else:
+        signal = laser
+    noisy = signal + rng.normal(0, 1, signal.shape) * np.sqrt(
+        read_noise**2 + gain * np.maximum(signal, 0)
+    )
+    img = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    return img, truth
+
+
+def _errors(res_u, res_v, truth: Truth, tol: float = 1.5):
+    """Per detected point: error to the nearest true stripe in its row, and the stripe index."""
+    c = truth.centre(res_v)  # (S, K)
+    d = res_u[None, :] - c
+    k = np.argmin(np.abs(d), axis=0)
+    err = d[k, np.arange(d.shape[1])]
+    return err, k, np.abs(err) <= tol
+
+
+# --------------------------------------------------------------------------- tests
+def test_centre_accuracy_noisy_image():
+    img, truth = render(seed=1)
+    res = extract_slits(img)
+    assert isinstance(res, SlitExtraction)
+    err, k, ok = _errors(res.u, res.v, truth)
+    assert ok.mean() > 0.99  # essentially no false detections
+    # every stripe found in (almost) every row
+    counts = np.bincount(k[ok], minlength=len(truth.u0))
+    assert counts.min() >= 0.97 * img.shape[0]
+    rms = np.sqrt(np.mean(err[ok] ** 2))
+    assert rms <= 0.05, rms
+    # sizes estimated from the image
+    assert 0.8 * 1.3 * FWHM_PER_SIGMA < res.stripe_width_px < 1.25 * 1.3 * FWHM_PER_SIGMA
+    assert 1.0 < res.dot_size_px < 3.5
+    assert 1.0 < res.noise_sigma < 6.0
+
+
+@pytest.mark.parametrize("method", CENTRE_METHODS)
+def test_centre_methods_noise_free(method):
+    img, truth = render(seed=2, read_noise=0.0, gain=0.0, ambient=False, dots_per_stripe=0)
+    res = extract_slits(img, stripe_width_px=3.1, dot_size_px=1.9, method=method)
+    err, _, ok = _errors(res.u, res.v, truth)
+    assert ok.all()
+    limit = {"gaussian": 0.02, "steger": 0.05, "parabolic": 0.1, "centroid": 0.1}[method]
+    assert np.sqrt(np.mean(err**2)) < limit
+
+
+def test_saturated_stripes_unbiased():
+    img, truth = render(seed=3, saturate=True)
+    assert (img == 255).sum() > 1000
+    res = extract_slits(img)
+    err, k, ok = _errors(res.u, res.v, truth)
+    assert ok.mean() > 0.99
+    assert np.bincount(k[ok]).min() >= 0.95 * img.shape[0]
+    assert abs(np.mean(err[ok])) <= 0.1
+    per_stripe_bias = np.array([np.mean(err[ok & (k == s)]) for s in range(len(truth.u0))])
+    assert np.abs(per_stripe_bias).max() <= 0.1, per_stripe_bias
+    assert np.sqrt(np.mean(err[ok] ** 2)) <= 0.15
+
+
+def test_separation_dots_removed_and_kept():
+    img, truth = render(seed=4)
+    sep = separate(img, stripe_width_px=3.1, dot_size_px=1.9)
+    h, w = img.shape
+    assert sep.highpass.shape == sep.slits.shape == sep.dots.shape == (h, w)
+    assert sep.slits.dtype == np.float32
+    np.testing.assert_allclose(sep.highpass - sep.slits, sep.dots)
+    # dots at least 4 px (3 stripe sigmas) from any stripe centre and inside the image
+    du, dv = truth.dots[:, 0], truth.dots[:, 1]
+    dist = np.abs(truth.centre(dv) - du[None, :]).min(0)
+    far = (dist > 4) & (du > 3) & (du < w - 4) & (dv > 3) & (dv < h - 4)
+    assert far.sum() > 50
+    r, c = np.rint(dv[far]).astype(int), np.rint(du[far]).astype(int)
+    noise = 5.0  # DN, a little over the rendered noise at the dots
+    # slit image at the dots ~ background (the opening removed them)
+    assert np.median(sep.slits[r, c]) < noise
+    # the dot image keeps them: dot peaks 60-120 DN times albedo 0.8-1.5
+    assert np.median(sep.dots[r, c]) > 30
+    assert np.median(sep.highpass[r, c] - sep.dots[r, c]) < noise
+    # the background is flat in the highpass: far from stripes and dots it is ~0
+    rows = np.arange(h)
+    stripe_dist = np.abs(truth.centre(rows)[:, :, None] - np.arange(w)[None, None, :]).min(0)
+    bg = stripe_dist > 10
+    assert np.percentile(sep.highpass[bg], 99) < 15
+
+
+def test_linking_continuous_and_jump():
+    img, truth = render(seed=5, jump=10.0)
+    res = extract_slits(img)
+    err, k, ok = _errors(res.u, res.v, truth)
+    n = len(truth.u0)
+    for s in range(1, n):  # continuous stripes: one segment each
+        labels = np.unique(res.segment[ok & (k == s)])
+        assert labels.size == 1 and labels[0] >= 0, (s, labels)
+    # stripe 0 jumps by 10 px at the middle row: two segments, split at the jump
+    sel = ok & (k == 0)
+    top = res.segment[sel & (res.v < truth.jump_row)]
+    bottom = res.segment[sel & (res.v >= truth.jump_row)]
+    # (a few points right at the jump may be dropped as a too-short piece)
+    top_id = np.bincount(top[top >= 0]).argmax()
+    bottom_id = np.bincount(bottom[bottom >= 0]).argmax()
+    assert np.mean(top == top_id) > 0.95 and np.mean(bottom == bottom_id) > 0.95
+    assert top_id != bottom_id
+    assert res.num_segments == n + 1
+
+
+def test_link_segments_unit():
+    v = np.arange(40.0)
+    # stripe A continuous with a 2-row gap; stripe B jumps at row 20; C too short
+    ua = 10 + 0.3 * v
+    keep_a = (v < 15) | (v > 16)
+    ub = np.where(v < 20, 50.0, 60.0)
+    uc = np.full(5, 100.0)
+    u = np.concatenate([ua[keep_a], ub, uc])
+    vv = np.concatenate([v[keep_a], v, v[:5]])
+    lab = link_segments(u, vv, max_du=1.5, max_gap=2, min_length=10)
+    na = keep_a.sum()
+    assert np.unique(lab[:na]).size == 1
+    lb = lab[na : na + 40]
+    assert np.unique(lb[:20]).size == 1 and np.unique(lb[20:]).size == 1 and lb[0] != lb[20]
+    assert (lab[na + 40 :] == -1).all()
+    assert sorted(set(lab.tolist()) - {-1}) == [0, 1, 2]  # ordered by mean u: A, B top, B bottom
+    assert lab[0] == 0
+    # a gap longer than max_gap breaks
+    lab2 = link_segments(u, vv, max_gap=1, min_length=5)
+    assert np.unique(lab2[:na]).size == 2
+    # ambiguity: two candidates within max_du in the next row breaks the chain
+    u3 = np.array([0.0, 1.0, 0.0, -1.0, 0.0, 0.0])
+    v3 = np.array([0.0, 1.0, 1.0, 2.0, 3.0, 4.0])
+    lab3 = link_segments(u3, v3, max_du=1.5, max_gap=0, min_length=1)
+    assert lab3[0] != lab3[1] and lab3[0] != lab3[2]
+    assert link_segments([], []).shape == (0,)
+
+
+def test_empty_image_gives_empty_result():
+    for img in (np.zeros((64, 80), np.uint8), np.full((64, 80), 77, np.uint16)):
+        res = extract_slits(img)
+        assert res.u.shape == res.v.shape == res.peak.shape == res.segment.shape == (0,)
+        assert res.dots.shape == img.shape and res.num_segments == 0
+    # pure noise (sizes given): no segment
+    rng = np.random.default_rng(0)
+    noise = np.clip(rng.normal(50, 3, (128, 160)), 0, 255).astype(np.uint8)
+    res = extract_slits(noise, stripe_width_px=3.0, dot_size_px=2.0)
+    assert res.num_segments == 0
+
+
+def test_uint16_and_float_inputs():
+    img, truth = render(seed=6)  # the brightest stripes clip at 255
+    # 8-bit data in uint16 (x16, saturating at 4080 like a 12-bit camera) and as float: the
+    # saturation level must then be given
+    for data, level in ((img.astype(np.uint16) * 16, 255 * 16), (img.astype(np.float64), 255)):
+        res = extract_slits(data, stripe_width_px=3.1, dot_size_px=1.9, saturation_level=level)
+        err, _, ok = _errors(res.u, res.v, truth)
+        assert ok.mean() > 0.99 and np.sqrt(np.mean(err[ok] ** 2)) <= 0.05
+
+
+def test_find_stripe_centres_direct():
+    img, truth = render(seed=7, ambient=False, dots_per_stripe=0)
+    sep = separate(img, 3.1, 1.9)
+    u, v, peak, width = find_stripe_centres(sep.slits, noise_sigma=2.0)
+    err, _, ok = _errors(u, v, truth)
+    assert ok.all() and np.sqrt(np.mean(err**2)) < 0.05
+    assert np.all(peak > 8)
+    assert abs(np.nanmedian(width) - 1.3 * FWHM_PER_SIGMA) < 0.4
+
+
+def test_estimate_stripe_width():
+    for sigma in (1.0, 1.5, 2.5):
+        img, _ = render(seed=8, sigma=sigma, dot_sigma=0.8)
+        w = estimate_stripe_width(img)
+        assert abs(w / (sigma * FWHM_PER_SIGMA) - 1) < 0.2, (sigma, w)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((4, 5, 3), np.uint8),
+        np.zeros((0, 10), np.uint8),
+        np.array([[1.0, np.nan], [0.0, 1.0]]),
+        np.zeros((5, 5), bool),
+        np.zeros(10),
+    ],
+)
+def test_bad_images_raise(bad):
+    with pytest.raises(MultislitError, match="image"):
+        extract_slits(bad)
+    with pytest.raises(MultislitError):
+        separate(bad, 3.0, 2.0)
+
+
+def test_bad_parameters_raise():
+    img = np.zeros((32, 32), np.uint8)
+    with pytest.raises(MultislitError, match="stripe_width_px"):
+        extract_slits(img, stripe_width_px=-1)
+    with pytest.raises(MultislitError, match="method"):
+        extract_slits(img, method="magic")
+    with pytest.raises(MultislitError, match="saturated"):
+        find_stripe_centres(img, saturated=np.zeros((3, 3), bool))
+    with pytest.raises(MultislitError, match="u and v"):
+        link_segments([1.0, 2.0], [1.0])
