@@ -1,0 +1,409 @@
+"""Slit address identification (paper section 4.2, Fig. 12-13).
+
+For sample points on each slit segment of a scan, a template of the dot image around the point
+is compared (normalised cross-correlation) with the reference dot images only where the point's
+epipolar line meets each slit's reference curve: N candidates per reference image instead of a
+search over the image. The samples of a segment vote; the margin between the best and the
+second-best slit gives a confidence; the left-to-right order of neighbouring segments is checked;
+a segment that cannot be identified with confidence is dropped and counted, never guessed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import IdentificationError
+from .reference import (
+    ReferenceSet,
+    curve_u,
+    intersect_line_curves,
+    normalise_patches,
+    sample_patches,
+)
+from .slits import SlitExtraction, extract_slits
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class IdentifyParams:
+    """Tuning of the identification; sizes in units of the reference slit spacing unless px.
+
+    template_half_width : template half width across the slit (x spacing)
+    template_half_height : template half height along the slit (x spacing)
+    sample_step : distance between sample points along a segment (x spacing)
+    search_px : search +- this many px along the epipolar line around each intersection
+        (absorbs a dot projector that is not exactly on the slits' common axis)
+    min_score : a segment's best mean NCC must reach this
+    min_confidence : segments below this confidence are dropped
+    min_samples : segments with fewer sample points are dropped (too short to vote)
+    """
+
+    template_half_width: float = 0.40
+    template_half_height: float = 0.75
+    sample_step: float = 0.30
+    search_px: int = 1
+    min_score: float = 0.25
+    min_confidence: float = 0.30
+    min_samples: int = 2
+    chunk: int = 400
+
+
+@dataclass(frozen=True, eq=False)
+class Identification:
+    """Result of identifying the slits of one image. Arrays are per stripe-centre point.
+
+    u, v : (K,) float64, px, stripe centres
+    slit : (K,) int64, slit number 0..N-1, -1 where not identified
+    confidence : (K,) float64, 0..1 (0 where not identified)
+    segment : (K,) int64, segment id from the extraction (-1 for unlinked points)
+    peak, width : (K,) float64, stripe peak height (DN above background) and width (px)
+    """
+
+    u: F64
+    v: F64
+    slit: I64
+    confidence: F64
+    segment: I64
+    peak: F64
+    width: F64
+    num_segments: int
+    num_identified: int
+    dropped: dict[str, int] = field(default_factory=dict)
+    message: str = ""
+    extraction: SlitExtraction | None = None
+
+    @property
+    def identified(self) -> NDArray[np.bool_]:
+        return self.slit >= 0
+
+    @property
+    def num_dropped(self) -> int:
+        return int(sum(self.dropped.values()))
+
+
+def _sample_points(seg: I64, v: F64, step_px: float) -> NDArray[np.intp]:
+    """Indices of points spaced about ``step_px`` rows apart along each segment."""
+    idx = np.flatnonzero(seg >= 0)
+    if idx.size == 0:
+        return idx
+    order = idx[np.lexsort((v[idx], seg[idx]))]
+    s = seg[order]
+    first = np.r_[True, s[1:] != s[:-1]]
+    start_v = np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+    rel = v[order] - v[order][start_v]
+    bucket = np.floor(rel / step_px + 0.5).astype(np.int64)
+    # keep the first point of each (segment, bucket)
+    key = s.astype(np.int64) * 1_000_000 + bucket
+    keep = np.r_[True, key[1:] != key[:-1]]
+    return order[keep]
+
+
+def _score_candidates(
+    ref: ReferenceSet, scan_dots: NDArray, pu: F64, pv: F64, p: IdentifyParams
+) -> F64:
+    """NCC of each sample's template at each slit's epipolar intersection: (M, N), NaN = no candidate."""
+    R, N = ref.curves.shape[:2]
+    w, h = ref.image_size
+    hw = max(2, int(round(p.template_half_width * ref.spacing_px)))
+    hh = max(3, int(round(p.template_half_height * ref.spacing_px)))
+    M = len(pu)
+    scores = np.full((M, N), np.nan)
+    offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
+    for c0 in range(0, M, p.chunk):
+        c1 = min(M, c0 + p.chunk)
+        uv = np.c_[pu[c0:c1], pv[c0:c1]]
+        m = len(uv)
+        tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))  # (m, K)
+        lines = ref.epipolar_lines(uv)  # (m, 3), unit normal (a, b)
+        direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
+        best = np.full((m, N), -np.inf)
+        valid_any = np.zeros((m, N), bool)
+        for r in range(R):
+            vv = intersect_line_curves(
+                lines[:, None, :], ref.curves[r][None, :, :], np.broadcast_to(uv[:, 1:2], (m, N))
+            )
+            uu = curve_u(ref.curves[r][None, :, :], vv)
+            lo = ref.vrange[r, :, 0][None, :]
+            hi = ref.vrange[r, :, 1][None, :]
+            ok = (
+                np.isfinite(vv)
+                & (vv >= lo - hh)
+                & (vv <= hi + hh)
+                & (uu >= hw)
+                & (uu <= w - 1 - hw)
+            )
+            ok &= (vv >= hh) & (vv <= h - 1 - hh)
+            ii, kk = np.nonzero(ok)
+            if ii.size == 0:
+                continue
+            cand = np.stack([uu[ii, kk], vv[ii, kk]], axis=1)
+            for o in offs:
+                c = cand + o * direction[ii]
+                pat = normalise_patches(sample_patches(ref.dots[r], c, hw, hh))
+                s = np.einsum("ij,ij->i", pat, tmpl[ii])
+                cur = best[ii, kk]
+                best[ii, kk] = np.maximum(cur, s)
+            valid_any[ii, kk] = True
+        blk = np.where(valid_any, best, np.nan)
+        # a flat template (no dots around the point) says nothing
+        flat = ~np.any(tmpl != 0, axis=1)
+        blk[flat] = np.nan
+        scores[c0:c1] = blk
+    return scores
+
+
+def split_at_brightness_steps(
+    seg: I64, v: F64, peak: F64, ratio: float = 1.6, window: int = 6
+) -> I64:
+    """Split segments where the stripe's brightness steps abruptly along v.
+
+    Where a stripe on one surface runs into another slit's stripe on a surface at another depth
+    (or albedo), linking can join them; the peak brightness then changes by a large factor from
+    one side of the junction to the other, while along one surface it changes slowly. The split
+    is placed where the median brightness of the ``window`` rows before and after differ most,
+    if they differ by more than ``ratio``.
+    """
+    seg = seg.copy()
+    next_id = int(seg.max()) + 1 if seg.size else 0
+    ids = np.unique(seg[seg >= 0])
+    for sid in ids:
+        pts = np.flatnonzero(seg == sid)
+        if pts.size < 2 * window + 2:
+            continue
+        pts = pts[np.argsort(v[pts])]
+        logp = np.log(np.maximum(peak[pts], 1e-3))
+        # rolling medians before / after each gap between consecutive points
+        from numpy.lib.stride_tricks import sliding_window_view
+
+        med = np.median(sliding_window_view(logp, window), axis=1)  # med[i] = rows i..i+w-1
+        before = med[: len(med) - window]  # rows j-w..j-1 for split after index j-1
+        after = med[window:]
+        step = np.abs(after - before)
+        cut_at = []
+        while step.size and step.max() > np.log(ratio):
+            j = int(np.argmax(step))
+            cut_at.append(j + window)  # first point of the new piece
+            lo, hi = max(0, j - window), min(len(step), j + window + 1)
+            step[lo:hi] = 0
+        for c in sorted(cut_at):
+            seg[pts[c:]] = np.where(seg[pts[c:]] == seg[pts[c]], next_id, seg[pts[c:]])
+            next_id += 1
+    return seg
+
+
+def _split_segments(seg: I64, v: F64, si: NDArray[np.intp], scores: F64, p: IdentifyParams) -> I64:
+    """Split segments whose samples clearly change winner along v (two slits linked by chance).
+
+    A stripe on a near surface can run into another slit's stripe on a far surface at the same
+    image column; linking then joins them. Along such a segment the per-sample best slit changes
+    from one run of samples to another: each run of >= 2 confident samples becomes a segment.
+    """
+    seg = seg.copy()
+    if len(si) == 0:
+        return seg
+    S = np.where(np.isfinite(scores), scores, -1.0)
+    top2 = np.sort(S, axis=1)[:, -2:] if S.shape[1] > 1 else np.c_[np.full(len(S), -1.0), S]
+    win = np.argmax(S, axis=1)
+    strong = (top2[:, 1] >= p.min_score) & (top2[:, 1] - top2[:, 0] >= 0.1)
+    next_id = int(seg.max()) + 1
+    ss = seg[si]
+    for sid in np.unique(ss):
+        rows = np.flatnonzero((ss == sid) & strong)
+        if rows.size < 4:
+            continue
+        rows = rows[np.argsort(v[si[rows]])]
+        w_ = win[rows]
+        change = np.flatnonzero(w_[1:] != w_[:-1])
+        if change.size == 0:
+            continue
+        # runs of equal winners; only runs of >= 2 samples count, single outliers are noise
+        starts = np.r_[0, change + 1]
+        ends = np.r_[change + 1, len(w_)]
+        runs = [(a, b) for a, b in zip(starts, ends, strict=True) if b - a >= 2]
+        if len(runs) < 2:
+            continue
+        # merge neighbouring runs with the same winner
+        merged = [runs[0]]
+        for a, b in runs[1:]:
+            if w_[a] == w_[merged[-1][0]]:
+                merged[-1] = (merged[-1][0], b)
+            else:
+                merged.append((a, b))
+        if len(merged) < 2:
+            continue
+        pts = np.flatnonzero(seg == sid)
+        for (_, b_prev), (a_next, _) in zip(merged[:-1], merged[1:], strict=True):
+            cut = 0.5 * (v[si[rows[b_prev - 1]]] + v[si[rows[a_next]]])
+            seg[pts[v[pts] > cut]] = next_id
+            next_id += 1
+    return seg
+
+
+def _segment_votes(
+    seg_of_sample: I64, scores: F64, p: IdentifyParams
+) -> dict[int, tuple[int, float, float, int]]:
+    """Per segment: (best slit, confidence, best mean score, number of samples)."""
+    out: dict[int, tuple[int, float, float, int]] = {}
+    if len(scores) == 0:
+        return out
+    order = np.argsort(seg_of_sample, kind="stable")
+    s_sorted = seg_of_sample[order]
+    bounds = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1], True])
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        rows = order[a:b]
+        S = scores[rows]
+        good = np.isfinite(S).any(axis=1)
+        S = S[good]
+        n = len(S)
+        sid = int(s_sorted[a])
+        if n == 0:
+            out[sid] = (-1, 0.0, np.nan, 0)
+            continue
+        Sz = np.where(
+            np.isfinite(S), S, -0.2
+        )  # a hypothesis without a candidate counts as a bad match
+        mean = Sz.mean(axis=0)
+        k1 = int(np.argmax(mean))
+        m1 = float(mean[k1])
+        rest = np.delete(mean, k1)
+        k2 = int(np.argmax(rest)) if rest.size else -1
+        m2 = float(rest[k2]) if rest.size else -1.0
+        k2 = k2 + (k2 >= k1) if k2 >= 0 else -1
+        d = Sz[:, k1] - (Sz[:, k2] if k2 >= 0 else -1.0)
+        # margin, discounted by its uncertainty (few or disagreeing samples)
+        se = d.std(ddof=1) / np.sqrt(n) if n > 1 else 0.3
+        margin = max(0.0, m1 - m2 - se)
+        conf = float(np.clip(margin / 0.3, 0.0, 1.0))
+        out[sid] = (k1, conf, m1, n)
+    return out
+
+
+def _order_violations(u: F64, v: F64, slit: I64, seg: I64) -> set[tuple[int, int]]:
+    """Pairs of segments seen side by side in a row with their slit numbers out of order."""
+    m = slit >= 0
+    if m.sum() < 2:
+        return set()
+    row = np.round(v[m]).astype(np.int64)
+    uu, ss, gg = u[m], slit[m], seg[m]
+    o = np.lexsort((uu, row))
+    row, ss, gg = row[o], ss[o], gg[o]
+    same = row[1:] == row[:-1]
+    bad = same & (ss[1:] <= ss[:-1]) & (gg[1:] != gg[:-1])
+    return {(int(gg[i]), int(gg[i + 1])) for i in np.flatnonzero(bad)}
+
+
+def identify(
+    image: ArrayLike,
+    reference: ReferenceSet,
+    params: IdentifyParams | None = None,
+    extraction: SlitExtraction | None = None,
+) -> Identification:
+    """Find the slits in one image and give each stripe-centre point its slit number.
+
+    Parameters
+    ----------
+    image : (H, W) uint8/uint16, a scan (lasers on); must have the reference's image size
+    reference : the prepared :class:`ReferenceSet` (see ``prepare_reference``), reused per scan
+    params : tuning (defaults work for the simulated and paper-like rigs)
+    extraction : an extraction of ``image`` already made (skips extracting again)
+
+    Returns
+    -------
+    Identification with per-point u, v, slit (-1 = not identified) and confidence. An image
+    with no slits gives empty arrays and a message, not an exception.
+    """
+    p = params or IdentifyParams()
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise IdentificationError(f"image must be a 2-D grayscale array, got shape {img.shape}")
+    w, h = reference.image_size
+    if img.shape != (h, w):
+        raise IdentificationError(
+            f"image is {img.shape[1]}x{img.shape[0]} px but the reference was prepared for {w}x{h} px"
+        )
+    ex = extraction or extract_slits(
+        img, stripe_width_px=reference.stripe_width_px, dot_size_px=reference.dot_size_px
+    )
+    K = len(ex.u)
+    slit = np.full(K, -1, np.int64)
+    conf = np.zeros(K)
+    seg = ex.segment.astype(np.int64)
+    n_seg = int(len(np.unique(seg[seg >= 0])))
+    if K == 0 or n_seg == 0:
+        return Identification(
+            ex.u,
+            ex.v,
+            slit,
+            conf,
+            seg,
+            ex.peak,
+            ex.width,
+            0,
+            0,
+            {},
+            "no slits found in the image",
+            ex,
+        )
+    seg = split_at_brightness_steps(seg, ex.v, ex.peak)
+    step = max(2.0, p.sample_step * reference.spacing_px)
+    si = _sample_points(seg, ex.v, step)
+    scores = _score_candidates(reference, ex.dots.astype(np.float32), ex.u[si], ex.v[si], p)
+    seg = _split_segments(seg, ex.v, si, scores, p)
+    votes = _segment_votes(seg[si], scores, p)
+    dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0, "order": 0}
+    accepted: dict[int, tuple[int, float]] = {}
+    for sid in np.unique(seg[seg >= 0]):
+        k, c, m1, n = votes.get(int(sid), (-1, 0.0, np.nan, 0))
+        if n < p.min_samples:
+            dropped["too_short" if n > 0 or int(sid) not in votes else "no_candidate"] += 1
+        elif k < 0:
+            dropped["no_candidate"] += 1
+        elif m1 < p.min_score:
+            dropped["weak_match"] += 1
+        elif c < p.min_confidence:
+            dropped["low_confidence"] += 1
+        else:
+            accepted[int(sid)] = (k, c)
+    lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
+    lut_c = np.zeros(int(seg.max()) + 1)
+    for sid, (k, c) in accepted.items():
+        lut_k[sid], lut_c[sid] = k, c
+    has = seg >= 0
+    # a point far from every usable sample of its segment is not vouched for by the dots
+    usable = np.isfinite(scores).any(axis=1)
+    reach = np.full(len(seg), np.inf)
+    if usable.any():
+        us = si[usable]
+        o = np.lexsort((ex.v[us], seg[us]))
+        us = us[o]
+        key_s = seg[us].astype(float) * 1e6 + ex.v[us]
+        key_p = seg.astype(float) * 1e6 + ex.v
+        j = np.clip(np.searchsorted(key_s, key_p), 1, len(us) - 1)
+        for jj in (j - 1, j):
+            same = seg[us[jj]] == seg
+            reach = np.where(same, np.minimum(reach, np.abs(ex.v[us[jj]] - ex.v)), reach)
+    has &= reach <= max(step, p.template_half_height * reference.spacing_px)
+    slit[has] = lut_k[seg[has]]
+    conf[has] = lut_c[seg[has]]
+    # left-to-right order: drop the less confident of each out-of-order pair
+    for _ in range(10):
+        bad = _order_violations(ex.u, ex.v, slit, seg)
+        if not bad:
+            break
+        drop = {a if lut_c[a] < lut_c[b] else b for a, b in bad}
+        for sid in drop:
+            lut_k[sid] = -1
+            lut_c[sid] = 0.0
+            dropped["order"] += 1
+        slit[has] = lut_k[seg[has]]
+        conf[has] = lut_c[seg[has]]
+    conf[slit < 0] = 0.0
+    n_id = int(np.sum(lut_k >= 0))
+    return Identification(
+        ex.u, ex.v, slit, conf, seg, ex.peak, ex.width, n_seg, n_id, dropped, "", ex
+    )

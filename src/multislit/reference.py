@@ -1,0 +1,391 @@
+"""Reference images: one curve per slit ("reference lines"), the dot images, and the epipole.
+
+The paper records a flat board at a few distances with the lasers on and fits a line to each
+slit. We fit a low-order polynomial u = p(v) per slit (a straight line bends slightly under lens
+distortion) and number the slits 0..N-1 from left to right.
+
+The epipolar geometry that identification needs is that of the camera and the *dot* projector:
+as the depth of a surface point changes, the dots around it move in the image along a line
+through the dot projector's epipole. With no calibration at all, the epipole is estimated from
+the reference images themselves: the same dots, matched between two board distances, move along
+lines that all pass through it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .errors import ReferenceImageError
+from .slits import SlitExtraction, extract_slits
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+CURVE_DEGREE = 3  # u = p(v): a line plus the bend of a few px that lens distortion gives
+
+
+# --------------------------------------------------------------------------- sampling helpers
+def sample_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
+    """Bilinear patches of ``image`` around sub-pixel centres.
+
+    Parameters
+    ----------
+    image : (H, W) float32
+    centres : (M, 2) float64, px (u, v)
+    half_w, half_h : patch half sizes, px
+
+    Returns
+    -------
+    patches : (M, 2*half_h+1, 2*half_w+1) float32 (zero outside the image)
+    """
+    m = len(centres)
+    ph, pw = 2 * half_h + 1, 2 * half_w + 1
+    if m == 0:
+        return np.zeros((0, ph, pw), np.float32)
+    du = np.arange(-half_w, half_w + 1, dtype=np.float32)
+    dv = np.arange(-half_h, half_h + 1, dtype=np.float32)
+    mx = (centres[:, 0, None, None].astype(np.float32) + du[None, None, :]).repeat(ph, axis=1)
+    my = (centres[:, 1, None, None].astype(np.float32) + dv[None, :, None]).repeat(pw, axis=2)
+    mx = mx.reshape(m * ph, pw)
+    my = my.reshape(m * ph, pw)
+    out = np.empty((m * ph, pw), np.float32)
+    step = 30000 // ph * ph  # cv2.remap maps must have < 32767 rows
+    for r0 in range(0, m * ph, step):
+        out[r0 : r0 + step] = cv2.remap(
+            image,
+            mx[r0 : r0 + step],
+            my[r0 : r0 + step],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+    return out.reshape(m, ph, pw)
+
+
+def normalise_patches(p: F32) -> F32:
+    """Zero-mean, unit-norm patches (flattened to (M, K)); flat patches become all zero."""
+    f = p.reshape(len(p), -1).astype(np.float32)
+    f = f - f.mean(axis=1, keepdims=True)
+    n = np.linalg.norm(f, axis=1, keepdims=True)
+    return np.where(n > 1e-6, f / np.maximum(n, 1e-6), 0.0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- curves
+def _fit_curves(
+    ex: SlitExtraction, num_slits: int, name: str, image_height: int
+) -> tuple[F64, F64]:
+    """Group one reference image's centre points into ``num_slits`` slits; a curve per slit.
+
+    On a flat board every row crosses all N slits in order. Rows that show exactly N stripe
+    centres number them 0..N-1 from left to right; each linked segment takes the number its
+    points got most often, so a slit broken into pieces is still one slit.
+    """
+    seg = ex.segment
+    ids, counts = np.unique(seg[seg >= 0], return_counts=True)
+    long_ids = ids[counts >= 15]
+    use = np.isin(seg, long_ids)
+    if not np.any(use):
+        raise ReferenceImageError(
+            f"reference image {name}: no slits found (is the board lit by the lasers?)"
+        )
+    u, v, sg = ex.u[use], ex.v[use], seg[use]
+    row = np.round(v).astype(int)
+    order = np.lexsort((u, row))
+    u, v, sg, row = u[order], v[order], sg[order], row[order]
+    rows, start, per_row = np.unique(row, return_index=True, return_counts=True)
+    complete = per_row == num_slits
+    if complete.sum() < 10:
+        typical = int(np.bincount(per_row).argmax())
+        raise ReferenceImageError(
+            f"reference image {name}: found {typical} slits in most rows, expected {num_slits}; "
+            f"every slit must cross the board in every reference image (check that the board "
+            f"fills the field of view, the exposure, and rig.json's num_slits)"
+        )
+    rank = np.full(len(u), -1)
+    for s0 in start[complete]:
+        rank[s0 : s0 + num_slits] = np.arange(num_slits)
+    seg_rank = {}
+    for s in np.unique(sg):
+        r = rank[(sg == s) & (rank >= 0)]
+        if r.size:
+            vals, cnt = np.unique(r, return_counts=True)
+            if cnt.max() >= 0.9 * r.size:  # a segment that changes rank is two slits joined
+                seg_rank[s] = int(vals[cnt.argmax()])
+    lab = np.array([seg_rank.get(s, -1) for s in sg])
+    coeffs = np.zeros((num_slits, CURVE_DEGREE + 1))
+    vrange = np.zeros((num_slits, 2))
+    for k in range(num_slits):
+        m = lab == k
+        if m.sum() < max(20, 0.2 * image_height):
+            raise ReferenceImageError(
+                f"reference image {name}: slit {k} is seen over only {int(m.sum())} rows; every "
+                f"slit must cross the board (is part of the board in shadow or outside the fan?)"
+            )
+        c = np.polyfit(v[m], u[m], CURVE_DEGREE)
+        r = u[m] - np.polyval(c, v[m])
+        ok = np.abs(r) < max(1.0, 4 * 1.4826 * np.median(np.abs(r)))
+        coeffs[k] = np.polyfit(v[m][ok], u[m][ok], CURVE_DEGREE)
+        vrange[k] = v[m][ok].min(), v[m][ok].max()
+    mid = np.array([np.polyval(c, image_height / 2.0) for c in coeffs])
+    if np.any(np.diff(mid) <= 0):
+        raise ReferenceImageError(
+            f"reference image {name}: slit curves cross each other; is this a flat board?"
+        )
+    return coeffs, vrange
+
+
+def curve_u(coeffs: F64, v: F64) -> F64:
+    """Evaluate curves: coeffs (..., D+1) highest power first, v broadcastable -> u."""
+    u = np.zeros(np.broadcast_shapes(coeffs.shape[:-1], np.shape(v)))
+    for i in range(coeffs.shape[-1]):
+        u = u * v + coeffs[..., i]
+    return u
+
+
+def curve_du(coeffs: F64, v: F64) -> F64:
+    """Derivative du/dv of the curves."""
+    d = coeffs.shape[-1] - 1
+    out = np.zeros(np.broadcast_shapes(coeffs.shape[:-1], np.shape(v)))
+    for i in range(d):
+        out = out * v + coeffs[..., i] * (d - i)
+    return out
+
+
+def intersect_line_curves(lines: F64, coeffs: F64, v0: F64, iterations: int = 6) -> F64:
+    """Rows v where lines a u + b v + c = 0 meet curves u = p(v) (Newton from v0), broadcast."""
+    v = np.array(v0, dtype=float, copy=True)
+    a, b, c = lines[..., 0], lines[..., 1], lines[..., 2]
+    for _ in range(iterations):
+        f = a * curve_u(coeffs, v) + b * v + c
+        df = a * curve_du(coeffs, v) + b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = v - f / np.where(np.abs(df) > 1e-12, df, np.nan)
+    return v
+
+
+# --------------------------------------------------------------------------- reference set
+@dataclass(frozen=True, eq=False)
+class ReferenceSet:
+    """Everything identification needs from the reference images, prepared once.
+
+    Attributes
+    ----------
+    image_size : (W, H) px
+    num_slits : N
+    names : (R,) reference image names
+    curves : (R, N, D+1) float64, u = p(v) per image and slit (highest power first)
+    vrange : (R, N, 2) float64, px, rows where each curve was seen
+    dots : (R, H, W) float32, the dot images (slits removed)
+    epipole : (3,) float64, homogeneous image point of the dot projector
+    spacing_px : float, median slit spacing in the references
+    stripe_width_px, dot_size_px : float, measured in the references
+    epipole_residual_px : float, RMS distance of the matched dot tracks to the epipole's lines
+    """
+
+    image_size: tuple[int, int]
+    num_slits: int
+    names: tuple[str, ...]
+    curves: F64
+    vrange: F64
+    dots: F32
+    epipole: F64
+    spacing_px: float
+    stripe_width_px: float
+    dot_size_px: float
+    epipole_residual_px: float
+
+    def epipolar_lines(self, uv: F64) -> F64:
+        """Lines (M, 3) through the points (M, 2) px and the dot projector's epipole."""
+        h = np.concatenate([uv, np.ones((len(uv), 1))], axis=1)
+        ln = np.cross(h, self.epipole[None, :])
+        return ln / np.linalg.norm(ln[:, :2], axis=1, keepdims=True)
+
+    def save(self, path: str | Path) -> None:
+        np.savez_compressed(
+            path,
+            image_size=np.array(self.image_size),
+            num_slits=self.num_slits,
+            names=np.array(self.names),
+            curves=self.curves,
+            vrange=self.vrange,
+            dots=self.dots.astype(np.float16),
+            epipole=self.epipole,
+            spacing_px=self.spacing_px,
+            stripe_width_px=self.stripe_width_px,
+            dot_size_px=self.dot_size_px,
+            epipole_residual_px=self.epipole_residual_px,
+            schema="multislit-reference/1",
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> ReferenceSet:
+        p = Path(path)
+        if not p.is_file():
+            raise ReferenceImageError(f"prepared reference not found: {p}")
+        z = np.load(p, allow_pickle=False)
+        if str(z.get("schema", "")) != "multislit-reference/1":
+            raise ReferenceImageError(
+                f"{p} is not a multislit reference file (schema multislit-reference/1)"
+            )
+        return cls(
+            tuple(int(x) for x in z["image_size"]),
+            int(z["num_slits"]),
+            tuple(str(x) for x in z["names"]),
+            z["curves"],
+            z["vrange"],
+            z["dots"].astype(np.float32),
+            z["epipole"],
+            float(z["spacing_px"]),
+            float(z["stripe_width_px"]),
+            float(z["dot_size_px"]),
+            float(z["epipole_residual_px"]),
+        )
+
+
+def estimate_epipole(
+    curves: F64, vrange: F64, dots: F32, spacing_px: float, image_height: int
+) -> tuple[F64, float]:
+    """The dot projector's epipole from dots matched between reference images.
+
+    For each pair of reference images and each slit, dot templates beside the slit in the first
+    image are found beside the same slit in the second (a 1-D search along its curve); each
+    match is a short track whose line passes through the epipole. The epipole is the least
+    squares meeting point of all tracks (homogeneous, so it may lie far outside the image or at
+    infinity).
+
+    Returns
+    -------
+    epipole : (3,) homogeneous, unit norm
+    rms : float, px, RMS distance of the track lines' far ends to the fitted epipole line
+    """
+    R, N = curves.shape[:2]
+    hw = max(3, int(round(0.35 * spacing_px)))
+    hh = max(6, int(round(0.6 * spacing_px)))
+    search = int(round(2.5 * spacing_px))
+    tracks = []
+    for a in range(R):
+        for b in range(a + 1, R):
+            for k in range(N):
+                lo = max(vrange[a, k, 0], vrange[b, k, 0]) + hh + search
+                hi = min(vrange[a, k, 1], vrange[b, k, 1]) - hh - search
+                if hi <= lo:
+                    continue
+                vs = np.arange(lo, hi, max(hh, 8.0))
+                ua = curve_u(curves[a, k], vs)
+                tmpl = normalise_patches(sample_patches(dots[a], np.c_[ua, vs], hw, hh))
+                offs = np.arange(-search, search + 1, 1.0)
+                vb = (vs[:, None] + offs[None, :]).ravel()
+                ub = curve_u(curves[b, k], vb)
+                cand = normalise_patches(sample_patches(dots[b], np.c_[ub, vb], hw, hh))
+                score = np.einsum("mk,mjk->mj", tmpl, cand.reshape(len(vs), len(offs), -1))
+                j = np.argmax(score, axis=1)
+                best = score[np.arange(len(vs)), j]
+                srt = np.sort(score, axis=1)
+                ok = (best > 0.5) & (best - srt[:, -3] > 0.15) & (j > 0) & (j < len(offs) - 1)
+                for i in np.flatnonzero(ok):
+                    # sub-step peak by a parabola through the neighbours
+                    s0, s1, s2 = score[i, j[i] - 1 : j[i] + 2]
+                    den = s0 - 2 * s1 + s2
+                    d = 0.5 * (s0 - s2) / den if den < 0 else 0.0
+                    v2 = vs[i] + offs[j[i]] + d
+                    tracks.append((ua[i], vs[i], curve_u(curves[b, k], v2), v2))
+    if len(tracks) < 4:
+        raise ReferenceImageError(
+            f"could not match the dots between reference images ({len(tracks)} matches): the "
+            "reference boards must show the same dot pattern at different distances"
+        )
+    T = np.array(tracks)
+    p1 = np.c_[T[:, :2], np.ones(len(T))]
+    p2 = np.c_[T[:, 2:], np.ones(len(T))]
+    lines = np.cross(p1, p2)
+    length = np.linalg.norm(T[:, 2:] - T[:, :2], axis=1)
+    use = length > 0.5  # a track needs a measurable motion
+    if use.sum() < 4:
+        raise ReferenceImageError(
+            "the dots do not move between the reference images: are the boards at different distances?"
+        )
+    lines = lines[use] / np.linalg.norm(lines[use, :2], axis=1, keepdims=True)
+    # robust: iteratively drop the worst tracks
+    keep = np.ones(len(lines), bool)
+    for _ in range(5):
+        _, _, vt = np.linalg.svd(lines[keep])
+        e = vt[-1]
+        # distance of each track's points to the line through its first point and e
+        l2 = np.cross(p1[use], e[None, :])
+        l2 /= np.linalg.norm(l2[:, :2], axis=1, keepdims=True)
+        res = np.abs(np.einsum("ij,ij->i", l2, p2[use]))
+        thr = max(0.5, 3 * 1.4826 * np.median(res[keep]))
+        new = res < thr
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    return e / np.linalg.norm(e), rms
+
+
+def prepare_reference(
+    images: Sequence[NDArray],
+    num_slits: int,
+    names: Sequence[str] | None = None,
+    stripe_width_px: float | None = None,
+    dot_size_px: float | None = None,
+) -> ReferenceSet:
+    """Prepare the reference set from >= 2 images of a flat board at different distances.
+
+    Parameters
+    ----------
+    images : sequence of (H, W) uint8/uint16, the reference images (lasers on)
+    num_slits : int, N; every image must show all N slits
+    names : names of the images for messages (default ref0, ref1, ...)
+    stripe_width_px, dot_size_px : optional, else measured from the images
+
+    Returns
+    -------
+    ReferenceSet, reused for every scan.
+    """
+    if len(images) < 2:
+        raise ReferenceImageError(
+            f"need >= 2 reference images at different distances, got {len(images)}"
+        )
+    if not isinstance(num_slits, int | np.integer) or num_slits < 1:
+        raise ReferenceImageError(f"num_slits must be a positive integer, got {num_slits!r}")
+    names = tuple(names) if names is not None else tuple(f"ref{i}" for i in range(len(images)))
+    shapes = {np.shape(im) for im in images}
+    if len(shapes) != 1:
+        raise ReferenceImageError(f"reference images differ in size: {sorted(shapes)}")
+    h, w = np.shape(images[0])[:2]
+    curves, vranges, dots, widths, dsz, spacing = [], [], [], [], [], []
+    for im, nm in zip(images, names, strict=True):
+        ex = extract_slits(im, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px)
+        c, vr = _fit_curves(ex, num_slits, nm, h)
+        curves.append(c)
+        vranges.append(vr)
+        dots.append(ex.dots.astype(np.float32))
+        widths.append(ex.stripe_width_px)
+        dsz.append(ex.dot_size_px)
+        mid = curve_u(c, np.full(num_slits, h / 2.0))
+        if num_slits > 1:
+            spacing.append(float(np.median(np.diff(mid))))
+    curves_a = np.array(curves)
+    vr_a = np.array(vranges)
+    dots_a = np.array(dots)
+    sp = float(np.median(spacing)) if spacing else float(w) / 4
+    epi, rms = estimate_epipole(curves_a, vr_a, dots_a, sp, h)
+    return ReferenceSet(
+        (int(w), int(h)),
+        int(num_slits),
+        names,
+        curves_a,
+        vr_a,
+        dots_a,
+        epi,
+        sp,
+        float(np.median(widths)),
+        float(np.median(dsz)),
+        rms,
+    )
