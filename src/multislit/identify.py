@@ -34,7 +34,11 @@ class IdentifyParams:
     """Tuning of the identification; sizes in units of the reference slit spacing unless px.
 
     template_half_width : template half width across the slit (x spacing)
-    template_half_height : template half height along the slit (x spacing)
+    template_dots : the template's height is chosen to hold about this many dots (from the
+        dot density measured in the references), between 0.5 and 4 slit spacings
+    trim_rows : rows at each end of a segment left unidentified (junctions of two stripes)
+    references : "nearest" (compare each hypothesis in the reference whose board lies nearest
+        the surface) or "all" (best over all references; slower)
     sample_step : distance between sample points along a segment (x spacing)
     search_px : search +- this many px along the epipolar line around each intersection
         (absorbs a dot projector that is not exactly on the slits' common axis)
@@ -44,10 +48,12 @@ class IdentifyParams:
     """
 
     template_half_width: float = 0.40
-    template_half_height: float = 0.75
+    template_dots: float = 12.0
     sample_step: float = 0.30
-    search_px: int = 1
-    min_score: float = 0.25
+    search_px: int = 0
+    references: str = "nearest"
+    trim_rows: int = 2
+    min_score: float = 0.15
     min_confidence: float = 0.30
     min_samples: int = 2
     chunk: int = 400
@@ -103,14 +109,21 @@ def _sample_points(seg: I64, v: F64, step_px: float) -> NDArray[np.intp]:
     return order[keep]
 
 
+def template_size(ref: ReferenceSet, p: IdentifyParams) -> tuple[int, int]:
+    """Template half width and half height (px): as wide as a dot band, tall enough for dots."""
+    hw = max(3, int(round(p.template_half_width * ref.spacing_px)))
+    want = p.template_dots / max(ref.dot_density, 1e-6) / (2 * hw + 1)
+    hh = int(round(np.clip(want / 2, 0.5 * ref.spacing_px, 4.0 * ref.spacing_px)))
+    return hw, max(4, hh)
+
+
 def _score_candidates(
     ref: ReferenceSet, scan_dots: NDArray, pu: F64, pv: F64, p: IdentifyParams
 ) -> F64:
-    """NCC of each sample's template at each slit's epipolar intersection: (M, N), NaN = no candidate."""
+    """NCC of each sample's template at each slit's epipolar intersection: (M, N), NaN = none."""
     R, N = ref.curves.shape[:2]
     w, h = ref.image_size
-    hw = max(2, int(round(p.template_half_width * ref.spacing_px)))
-    hh = max(3, int(round(p.template_half_height * ref.spacing_px)))
+    hw, hh = template_size(ref, p)
     M = len(pu)
     scores = np.full((M, N), np.nan)
     offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
@@ -121,8 +134,8 @@ def _score_candidates(
         tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))  # (m, K)
         lines = ref.epipolar_lines(uv)  # (m, 3), unit normal (a, b)
         direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
-        best = np.full((m, N), -np.inf)
-        valid_any = np.zeros((m, N), bool)
+        vv_all = np.full((R, m, N), np.nan)
+        uu_all = np.full((R, m, N), np.nan)
         for r in range(R):
             vv = intersect_line_curves(
                 lines[:, None, :], ref.curves[r][None, :, :], np.broadcast_to(uv[:, 1:2], (m, N))
@@ -130,25 +143,30 @@ def _score_candidates(
             uu = curve_u(ref.curves[r][None, :, :], vv)
             lo = ref.vrange[r, :, 0][None, :]
             hi = ref.vrange[r, :, 1][None, :]
-            ok = (
-                np.isfinite(vv)
-                & (vv >= lo - hh)
-                & (vv <= hi + hh)
-                & (uu >= hw)
-                & (uu <= w - 1 - hw)
-            )
-            ok &= (vv >= hh) & (vv <= h - 1 - hh)
-            ii, kk = np.nonzero(ok)
+            ok = np.isfinite(vv) & (vv >= lo - hh) & (vv <= hi + hh)
+            ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
+            vv_all[r] = np.where(ok, vv, np.nan)
+            uu_all[r] = np.where(ok, uu, np.nan)
+        valid_any = np.isfinite(vv_all).any(axis=0)
+        if p.references == "nearest":
+            # compare each hypothesis in the reference where its candidate lies nearest the
+            # scan point: the board depth closest to the surface's, the least deformed dots
+            disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
+            r_best = np.argmin(np.where(np.isfinite(disp), disp, np.inf), axis=0)
+            use = [(r, valid_any & (r_best == r)) for r in range(R)]
+        else:
+            use = [(r, np.isfinite(vv_all[r])) for r in range(R)]
+        best = np.full((m, N), -np.inf)
+        for r, mask in use:
+            ii, kk = np.nonzero(mask)
             if ii.size == 0:
                 continue
-            cand = np.stack([uu[ii, kk], vv[ii, kk]], axis=1)
+            cand = np.stack([uu_all[r, ii, kk], vv_all[r, ii, kk]], axis=1)
             for o in offs:
                 c = cand + o * direction[ii]
                 pat = normalise_patches(sample_patches(ref.dots[r], c, hw, hh))
-                s = np.einsum("ij,ij->i", pat, tmpl[ii])
-                cur = best[ii, kk]
-                best[ii, kk] = np.maximum(cur, s)
-            valid_any[ii, kk] = True
+                sc = np.einsum("ij,ij->i", pat, tmpl[ii])
+                best[ii, kk] = np.maximum(best[ii, kk], sc)
         blk = np.where(valid_any, best, np.nan)
         # a flat template (no dots around the point) says nothing
         flat = ~np.any(tmpl != 0, axis=1)
@@ -283,17 +301,24 @@ def _segment_votes(
     return out
 
 
-def _order_violations(u: F64, v: F64, slit: I64, seg: I64) -> set[tuple[int, int]]:
-    """Pairs of segments seen side by side in a row with their slit numbers out of order."""
+def _order_violations(
+    u: F64, v: F64, slit: I64, seg: I64, max_gap_px: float
+) -> set[tuple[int, int]]:
+    """Pairs of segments side by side in a row (closer than ``max_gap_px``) out of slit order.
+
+    Across an occlusion or a shadow the order of slits can legitimately change, but two stripes
+    directly next to each other on one surface keep the projector's left-to-right order.
+    """
     m = slit >= 0
     if m.sum() < 2:
         return set()
     row = np.round(v[m]).astype(np.int64)
     uu, ss, gg = u[m], slit[m], seg[m]
     o = np.lexsort((uu, row))
-    row, ss, gg = row[o], ss[o], gg[o]
+    row, uu, ss, gg = row[o], uu[o], ss[o], gg[o]
     same = row[1:] == row[:-1]
-    bad = same & (ss[1:] <= ss[:-1]) & (gg[1:] != gg[:-1])
+    near = (uu[1:] - uu[:-1]) < max_gap_px
+    bad = same & near & (ss[1:] <= ss[:-1]) & (gg[1:] != gg[:-1])
     return {(int(gg[i]), int(gg[i + 1])) for i in np.flatnonzero(bad)}
 
 
@@ -387,12 +412,26 @@ def identify(
         for jj in (j - 1, j):
             same = seg[us[jj]] == seg
             reach = np.where(same, np.minimum(reach, np.abs(ex.v[us[jj]] - ex.v)), reach)
-    has &= reach <= max(step, p.template_half_height * reference.spacing_px)
+    has &= reach <= max(step, template_size(reference, p)[1])
+    # the rows at a segment's ends are where it meets another surface or slit: the centre there
+    # mixes two stripes, so they are not vouched for
+    if p.trim_rows > 0 and has.any():
+        idx = np.flatnonzero(seg >= 0)
+        o = idx[np.lexsort((ex.v[idx], seg[idx]))]
+        sg = seg[o]
+        first = np.r_[True, sg[1:] != sg[:-1]]
+        last = np.r_[sg[1:] != sg[:-1], True]
+        vfirst = ex.v[o][np.maximum.accumulate(np.where(first, np.arange(len(o)), 0))]
+        # index of the last point of each run, propagated backwards
+        last_idx = np.minimum.accumulate(np.where(last, np.arange(len(o)), len(o))[::-1])[::-1]
+        vlast = ex.v[o][last_idx]
+        near_end = (ex.v[o] - vfirst < p.trim_rows) | (vlast - ex.v[o] < p.trim_rows)
+        has[o[near_end]] = False
     slit[has] = lut_k[seg[has]]
     conf[has] = lut_c[seg[has]]
     # left-to-right order: drop the less confident of each out-of-order pair
     for _ in range(10):
-        bad = _order_violations(ex.u, ex.v, slit, seg)
+        bad = _order_violations(ex.u, ex.v, slit, seg, 1.5 * reference.spacing_px)
         if not bad:
             break
         drop = {a if lut_c[a] < lut_c[b] else b for a, b in bad}

@@ -183,6 +183,7 @@ class ReferenceSet:
     dots : (R, H, W) float32, the dot images (slits removed)
     epipole : (3,) float64, homogeneous image point of the dot projector
     spacing_px : float, median slit spacing in the references
+    dot_density : float, dots per px^2 within the slit field (sizes the templates)
     stripe_width_px, dot_size_px : float, measured in the references
     epipole_residual_px : float, RMS distance of the matched dot tracks to the epipole's lines
     """
@@ -198,6 +199,7 @@ class ReferenceSet:
     stripe_width_px: float
     dot_size_px: float
     epipole_residual_px: float
+    dot_density: float = 0.02  # dots per px^2 in the slit field of the references
 
     def epipolar_lines(self, uv: F64) -> F64:
         """Lines (M, 3) through the points (M, 2) px and the dot projector's epipole."""
@@ -219,6 +221,7 @@ class ReferenceSet:
             stripe_width_px=self.stripe_width_px,
             dot_size_px=self.dot_size_px,
             epipole_residual_px=self.epipole_residual_px,
+            dot_density=self.dot_density,
             schema="multislit-reference/1",
         )
 
@@ -244,6 +247,7 @@ class ReferenceSet:
             float(z["stripe_width_px"]),
             float(z["dot_size_px"]),
             float(z["epipole_residual_px"]),
+            float(z["dot_density"]),
         )
 
 
@@ -328,6 +332,24 @@ def estimate_epipole(
     return e / np.linalg.norm(e), rms
 
 
+def _dot_density(dots: F32, curves: F64, vrange: F64) -> float:
+    """Dots per px^2 between the first and the last slit of a reference image."""
+    h, w = dots.shape
+    d = cv2.GaussianBlur(dots, (0, 0), 0.8)
+    local_max = d == cv2.dilate(d, np.ones((3, 3), np.uint8))
+    thr = 4.0 * 1.4826 * float(np.median(np.abs(d[d > 0]))) if np.any(d > 0) else 0.0
+    peaks = local_max & (d > max(thr, 1e-6))
+    vv = np.arange(h, dtype=float)
+    u0 = curve_u(curves[0], vv)
+    u1 = curve_u(curves[-1], vv)
+    uu = np.arange(w, dtype=float)[None, :]
+    field = (uu >= u0[:, None]) & (uu <= u1[:, None])
+    rows_ok = (vv >= vrange[:, 0].max()) & (vv <= vrange[:, 1].min())
+    field &= rows_ok[:, None]
+    area = float(field.sum())
+    return float((peaks & field).sum()) / area if area > 0 else 0.0
+
+
 def prepare_reference(
     images: Sequence[NDArray],
     num_slits: int,
@@ -376,6 +398,9 @@ def prepare_reference(
     dots_a = np.array(dots)
     sp = float(np.median(spacing)) if spacing else float(w) / 4
     epi, rms = estimate_epipole(curves_a, vr_a, dots_a, sp, h)
+    density = float(
+        np.median([_dot_density(d, c, vr) for d, c, vr in zip(dots_a, curves_a, vr_a, strict=True)])
+    )
     return ReferenceSet(
         (int(w), int(h)),
         int(num_slits),
@@ -388,4 +413,5 @@ def prepare_reference(
         float(np.median(widths)),
         float(np.median(dsz)),
         rms,
+        density,
     )
