@@ -1,0 +1,101 @@
+"""Single-shot pipeline speed per frame at full size (1280x1024), one core.
+
+Stages timed per frame: slit/dot extraction, identification, triangulation; the reference is
+prepared beforehand (once per rig). The slit planes and camera for triangulation are the
+simulator's true models (the timing does not depend on their values). The floor a frame cannot
+beat is one cv2.medianBlur pass over the same frame.
+
+Run:  .venv/bin/python benchmarks/bench_speed.py [--slits 25 49] [--repeat 7]
+(OpenCV is pinned to one thread: "one core".)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from multislit.capture import Capture
+from multislit.geometry import PinholeCamera
+from multislit.identify import identify
+from multislit.reference import prepare_reference
+from multislit.sim.rig import RigSpec
+from multislit.sim.simulate import simulate_capture
+from multislit.slits import extract_slits
+from multislit.triangulation import triangulate
+
+
+def run(num_slits: int, repeat: int, workdir: Path) -> dict:
+    spec = RigSpec()
+    if num_slits != 25:
+        spec = replace(spec, slits=replace(spec.slits, num_slits=num_slits, pitch_um=34.0 * num_slits / 25))
+    cap_dir = simulate_capture(workdir / f"cap{num_slits}", ["holes", "steps"], spec, seed=1)
+    cap = Capture.open(cap_dir)
+    ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+    models = json.loads((cap_dir / "truth" / "models.json").read_text())
+    cam = PinholeCamera.from_dict(models["camera"])
+    planes = np.array(models["projector"]["planes"])
+    rows = []
+    for p in cap.scans:
+        img = cap.image(p)
+        t_med, t_ex, t_id, t_tri, npts = [], [], [], [], 0
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            cv2.medianBlur(img, 5)
+            t1 = time.perf_counter()
+            ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
+            t2 = time.perf_counter()
+            ident = identify(img, ref, extraction=ex)
+            t3 = time.perf_counter()
+            ok = ident.identified
+            pts, valid = triangulate(cam, planes, np.c_[ident.u[ok], ident.v[ok]], ident.slit[ok])
+            t4 = time.perf_counter()
+            t_med.append(t1 - t0)
+            t_ex.append(t2 - t1)
+            t_id.append(t3 - t2)
+            t_tri.append(t4 - t3)
+            npts = int(valid.sum())
+        total = statistics.median(np.add(np.add(t_ex, t_id), t_tri))
+        rows.append(
+            {
+                "slits": num_slits,
+                "scene": p.stem,
+                "points": npts,
+                "median_blur_ms": 1e3 * statistics.median(t_med),
+                "extract_ms": 1e3 * statistics.median(t_ex),
+                "identify_ms": 1e3 * statistics.median(t_id),
+                "triangulate_ms": 1e3 * statistics.median(t_tri),
+                "total_ms": 1e3 * total,
+                "points_per_s": npts / total,
+            }
+        )
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--slits", type=int, nargs="+", default=[25, 49])
+    ap.add_argument("--repeat", type=int, default=5)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    with tempfile.TemporaryDirectory() as d:
+        rows = [r for n in args.slits for r in run(n, args.repeat, Path(d))]
+    print("| slits | scene | points | medianBlur ms | extract ms | identify ms | triangulate ms | total ms | x medianBlur | points/s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['slits']} | {r['scene']} | {r['points']} | {r['median_blur_ms']:.1f} | {r['extract_ms']:.1f} | "
+            f"{r['identify_ms']:.1f} | {r['triangulate_ms']:.1f} | {r['total_ms']:.1f} | "
+            f"{r['total_ms'] / r['median_blur_ms']:.0f} | {r['points_per_s']:.0f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
