@@ -504,8 +504,16 @@ def _saddle_refine(coef: F64, q: F64, half: int = 3, iterations: int = 6) -> tup
     q = np.array(q, dtype=float)
     det = np.full(len(q), np.nan)
     for _ in range(iterations):  # Newton steps on all corners at once
+        # corners that diverged are NaN: never pass NaN coordinates to map_coordinates (SciPy
+        # 1.17 can crash on them); sample them at 0 and let q + step keep them NaN
+        live = np.all(np.isfinite(q), axis=1)
+        qs = np.where(live[:, None], q, 0.0)
         vals = map_coordinates(
-            coef, [q[:, 1, None] + dy, q[:, 0, None] + dx], order=3, prefilter=False, mode="nearest"
+            coef,
+            [qs[:, 1, None] + dy, qs[:, 0, None] + dx],
+            order=3,
+            prefilter=False,
+            mode="nearest",
         )
         co = (vals * sw) @ pinv.T
         hxx, hxy, hyy = 2 * co[:, 3], co[:, 4], 2 * co[:, 5]

@@ -454,84 +454,90 @@ def reference_board(distance: float, rig_z: float = 1000.0) -> Scene:
 
 @dataclass(frozen=True)
 class TargetDesign:
-    """The standard object: a concave corner of three flat faces carrying checker markers."""
+    """The standard object: a concave corner of three flat faces carrying checker markers.
 
-    size: float = 220.0  # mm, depth of each face from the corner towards the rig
-    height: float = 280.0  # mm, height of the walls above the corner
-    marker_size: float = 30.0
+    Two vertical walls at +-45 degrees about the vertical meet at the corner; below them a steep
+    ramp (``ramp_slope`` = dY/dZ... its normal is (0, ramp_slope, 1)) closes the corner, so the
+    vertical slit planes cross all three faces nearly along v. Markers lie on a grid over each
+    face so that they span the image (lens distortion is then well determined).
+    """
+
+    depth: float = 210.0  # mm, how far the walls reach from the corner towards the rig
+    height: float = 250.0  # mm, height of the walls above the corner
+    ramp_depth: float = 200.0  # mm, how far the ramp reaches towards the rig
+    ramp_slope: float = 1.0  # the ramp drops 1 / ramp_slope mm per mm towards the rig
+    marker_size: float = 26.0
+    marker_pitch: float = 64.0
     corner_z: float = -60.0  # world Z of the corner (the deepest point)
 
 
-def standard_object(design: TargetDesign = TargetDesign()) -> tuple[Scene, list[dict], list[dict]]:
-    """Build the calibration target.
+def _grid_markers(prim: Polygon, outline: F64, design: TargetDesign) -> F64:
+    """Marker centres (local a, b) on a grid over a face, each square well inside the face."""
+    lo, hi = outline.min(axis=0), outline.max(axis=0)
+    pitch = design.marker_pitch
+    na = int((hi[0] - lo[0]) // pitch)
+    nb = int((hi[1] - lo[1]) // pitch)
+    ga = lo[0] + (hi[0] - lo[0] - (na - 1) * pitch) / 2 + pitch * np.arange(max(na, 1))
+    gb = lo[1] + (hi[1] - lo[1] - (nb - 1) * pitch) / 2 + pitch * np.arange(max(nb, 1))
+    A, B = np.meshgrid(ga, gb)
+    cand = np.stack([A.ravel(), B.ravel()], axis=1)
+    m = 0.75 * design.marker_size
+    ok = np.ones(len(cand), bool)
+    for da, db in ((-m, -m), (m, -m), (m, m), (-m, m)):
+        ok &= prim.contains(cand[:, 0] + da, cand[:, 1] + db)
+    return cand[ok]
 
-    Three faces meet at a corner: a left and a right wall at +-45 degrees about the vertical and
-    a ramp below them, all facing the rig. Markers: a grid on each face (>= 12 in all).
+
+def standard_object(design: TargetDesign = TargetDesign()) -> tuple[Scene, list[dict], list[dict]]:
+    """Build the calibration target (world frame = target frame: the corner at (0, 0, corner_z)).
 
     Returns
     -------
     scene, markers (dicts with id and xyz), faces (dicts with id, plane, polygon)
     """
-    s, h, z0 = design.size, design.height, design.corner_z
+    D, H, R, sl, z0 = (
+        design.depth,
+        design.height,
+        design.ramp_depth,
+        design.ramp_slope,
+        design.corner_z,
+    )
     c = np.array([0.0, 0.0, z0])
-    # local (a, b) of each face: a along the face away from the corner, b up the face
+    yb = -R / sl  # the ramp's front edge height
+    walls = {
+        # corner, top, top front, bottom front, ramp front corner
+        "F1": np.array([[0, 0, 0], [0, H, 0], [-D, H, D], [-D, yb, D], [-R, yb, R]], float),
+        "F2": np.array([[0, 0, 0], [0, H, 0], [D, H, D], [D, yb, D], [R, yb, R]], float),
+    }
+    ramp = np.array([[0, 0, 0], [-R, yb, R], [R, yb, R]], float)
     faces_def = [
-        ("F1", np.array([1.0, 0.0, 1.0]), np.array([-1.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])),
-        ("F2", np.array([-1.0, 0.0, 1.0]), np.array([1.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])),
-        ("F3", np.array([0.0, 1.0, 1.0]), np.array([0.0, -1.0, 1.0]), np.array([1.0, 0.0, 0.0])),
+        ("F1", np.array([1.0, 0.0, 1.0]), walls["F1"]),
+        ("F2", np.array([-1.0, 0.0, 1.0]), walls["F2"]),
+        ("F3", np.array([0.0, sl, 1.0]), ramp),
     ]
     prims: list[Primitive] = []
     markers: list[dict] = []
     faces: list[dict] = []
     k = 0
-    for fid, normal, along, across in faces_def:
+    for fid, normal, poly in faces_def:
+        poly_world = c + poly
         n = normal / np.linalg.norm(normal)
-        al = along / np.linalg.norm(along)
-        ac = across - (across @ n) * n
-        ac /= np.linalg.norm(ac)
-        L = s * np.sqrt(2)  # length along the face
-        if fid == "F3":
-            # ramp: a triangle bounded by the two walls; local (x along 'across', y along 'along')
-            poly_world = np.array([c, c + L * al - s * ac, c + L * al + s * ac])
-        else:
-            # wall: from the ramp edge (below) to the top
-            bottom_far = c + L * al + (-s) * np.array([0, 1.0, 0])  # ramp drops 1:1 with depth
-            poly_world = np.array(
-                [c, c + np.array([0, h, 0]), c + L * al + np.array([0, h, 0]), bottom_far]
-            )
-        # marker grid in face-local coords of a Polygon with origin c, normal n, up hint
-        up = np.array([0.0, 1.0, 0.0]) if fid != "F3" else al
-        prim_tmp = Polygon(c, n, up=up)
-        a_w, b_w = prim_tmp.local(poly_world)
+        tmp = Polygon(c, n)
+        a_w, b_w = tmp.local(poly_world)
         outline = np.stack([a_w, b_w], axis=1)
-        # markers: a 2 x 3 grid well inside the face
-        centre_ab = outline.mean(axis=0)
-        grid = []
-        for gi in (-1, 0, 1):
-            for gj in (-1, 1):
-                grid.append(centre_ab + np.array([gi * 0.22 * L * 0.9, gj * 0.2 * max(h, L) * 0.5]))
-        grid = np.array(grid)
-        inside = prim_tmp.__class__(c, n, outline=outline, up=up).contains(grid[:, 0], grid[:, 1])
-        # keep markers whose whole square is inside the face
-        keep = []
-        for g, ok in zip(grid, inside, strict=True):
-            corners = g + design.marker_size * 0.8 * np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
-            tmp = Polygon(c, n, outline=outline, up=up)
-            if ok and np.all(tmp.contains(corners[:, 0], corners[:, 1])):
-                keep.append(g)
-        keep_arr = np.array(keep)
+        shape = Polygon(c, n, outline=outline)
+        grid = _grid_markers(shape, outline, design)
         prim = Polygon(
             c,
             n,
             outline=outline,
-            texture=checker_markers(keep_arr, design.marker_size),
-            up=up,
+            texture=checker_markers(grid, design.marker_size),
             name=f"target_{fid}",
         )
         prims.append(prim)
-        for g in keep_arr:
+        for g in grid:
             k += 1
-            markers.append({"id": f"M{k:02d}", "xyz": prim.to_world(g[0], g[1]).tolist()})
+            markers.append({"id": f"M{k:02d}", "xyz": prim.to_world(g[0], g[1]).round(6).tolist()})
         faces.append({"id": fid, "plane": prim.plane.tolist(), "polygon": poly_world.tolist()})
     prims.append(_wall(z0 - 400.0, 0.3, "background"))
     return Scene("target", prims, {}), markers, faces

@@ -1,0 +1,324 @@
+"""Capture-level calibration (multislit.calibrate) and `multislit calibrate` on simulated captures."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from multislit import calibrate as cal_mod
+from multislit.calibrate import (
+    calibrate_camera_from_capture,
+    calibrate_capture,
+    run_calibration,
+    transfer_labels,
+)
+from multislit.calibration import Calibration, rms
+from multislit.capture import Capture
+from multislit.cli import main
+from multislit.errors import CalibrationError, CaptureError
+from multislit.geometry import camera_from_dict
+from multislit.slits import extract_slits
+from multislit.triangulation import triangulate
+
+
+# --------------------------------------------------------------------------- helpers
+def truth_labels(image, capture):
+    """Test-only labeller: the true slit at each extracted centre's rounded pixel."""
+    slit = np.load(Path(capture.root) / "truth" / "slits.npz")["slit"]
+    ex = extract_slits(image)
+    iu = np.clip(np.round(ex.u).astype(int), 0, image.shape[1] - 1)
+    iv = np.clip(np.round(ex.v).astype(int), 0, image.shape[0] - 1)
+    return slit[iv, iu]
+
+
+def truth(capture: Path):
+    m = json.loads((capture / "truth" / "models.json").read_text())
+    return camera_from_dict(m["camera"]), np.array(m["projector"]["planes"])
+
+
+def copy_capture(src: Path, dst: Path, edit=None) -> Path:
+    """A copy of the capture without scans/truth; ``edit(target_dict)`` changes target.json."""
+    dst.mkdir(parents=True)
+    for name in ("rig.json", "target.json"):
+        shutil.copy(src / name, dst / name)
+    for sub in ("calibration", "reference"):
+        shutil.copytree(src / sub, dst / sub)
+    if edit is not None:
+        t = json.loads((dst / "target.json").read_text())
+        edit(t)
+        (dst / "target.json").write_text(json.dumps(t))
+    return dst
+
+
+def slits_on_two_faces(capture: Path, min_pixels: int = 20) -> np.ndarray:
+    """(N,) bool: slits whose stripe crosses >= 2 target faces in calibration/slits.png (truth).
+
+    A slit seen on one flat face gives a line, which does not determine its plane by itself.
+    """
+    tr = np.load(capture / "truth" / "slits.npz")
+    faces = json.loads((capture / "target.json").read_text())["faces"]
+    n = json.loads((capture / "rig.json").read_text())["num_slits"]
+    vv, uu = np.nonzero(tr["slit"] >= 0)
+    X = tr["xyz"][vv, uu].astype(float)
+    k = tr["slit"][vv, uu]
+    out = np.zeros(n, bool)
+    counts = np.zeros((n, len(faces)), int)
+    for j, f in enumerate(faces):
+        on = np.abs(X @ np.array(f["plane"][:3]) + f["plane"][3]) < 0.5
+        counts[:, j] = np.bincount(k[on], minlength=n)[:n]
+    out[:] = (counts >= min_pixels).sum(axis=1) >= 2
+    return out
+
+
+def scan_truth_points(capture: Path, camera, planes, scan: str = "holes"):
+    """True 3D points on the true slit planes (from a scan's truth), and their exact pixels."""
+    tr = np.load(capture / "truth" / f"{scan}.npz")
+    vv, uu = np.nonzero(tr["slit"] >= 0)
+    X = tr["xyz"][vv, uu].astype(float)
+    k = tr["slit"][vv, uu].astype(np.intp)
+    X = X - (np.einsum("ij,ij->i", X, planes[k, :3]) + planes[k, 3])[:, None] * planes[k, :3]
+    sel = np.arange(0, len(X), 7)  # thin for speed
+    return X[sel], camera.project(X[sel]), k[sel]
+
+
+@pytest.fixture(scope="module")
+def hand_result(small_capture):
+    return run_calibration(small_capture, source="hand")
+
+
+@pytest.fixture(scope="module")
+def auto_result(small_capture):
+    return run_calibration(small_capture, source="auto", label_slits=truth_labels)
+
+
+# --------------------------------------------------------------------------- camera
+def test_camera_from_capture(small_capture, hand_result):
+    det, dlt, refined, res = hand_result.camera  # unpacks as a 4-tuple
+    assert det.found.all() and len(res.ids) == len(det.ids) >= 12
+    # the linear DLT cannot model the lens distortion; the refined model must
+    assert res.refined_rms_px <= 0.1 and res.refined_rms_px < res.dlt_rms_px
+    true_cam, _ = truth(small_capture)
+    xyz = Capture.open(small_capture).target.marker_xyz
+    err = np.linalg.norm(refined.project(xyz) - true_cam.project(xyz), axis=1)
+    assert err.max() <= 0.15, err
+
+
+def test_camera_is_right_over_the_whole_target(small_capture):
+    """The refined camera agrees with the true one over the target faces, not only at markers
+    (markers spread over the image pin the distortion down; straight stripes must not spoil it)."""
+    true_cam, _ = truth(small_capture)
+    cap = Capture.open(small_capture)
+    w, h = cap.image_size
+    uu, vv = np.meshgrid(np.linspace(0, w - 1, 32), np.linspace(0, h - 1, 26))
+    uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    from multislit.calibration import points_on_faces
+
+    xyz, face = points_on_faces(true_cam, uv, cap.target.faces)
+    ok = face >= 0
+    assert ok.sum() > 200
+    for stripes in (False, True):
+        cam = calibrate_camera_from_capture(cap, use_stripes=stripes).refined
+        err = np.linalg.norm(cam.project(xyz[ok]) - uv[ok], axis=1)
+        assert rms(err) < 0.1 and err.max() < 0.3, (stripes, rms(err), err.max())
+
+
+# --------------------------------------------------------------------------- projector
+def test_hand_readings_planes(small_capture, hand_result):
+    sp = hand_result.calibration.slit_planes
+    assert hand_result.source == "hand"
+    # every slit clearly seen on two faces gets a plane; one seen on a single face is left out
+    must, may = slits_on_two_faces(small_capture, 60), slits_on_two_faces(small_capture, 1)
+    assert np.all(sp.valid[must]) and not np.any(sp.valid & ~may)
+    assert np.nanmedian(sp.rms_mm) <= 0.05
+    # the paper's single 2x4 matrix cannot follow the grating's planes: larger error
+    pm = hand_result.projector.projector_rms_mm
+    assert np.nanmedian(pm) > 5 * np.nanmedian(sp.rms_mm)
+    _, true_planes = truth(small_capture)
+    cosang = np.abs(np.sum(sp.planes[:, :3] * true_planes[:, :3], axis=1))
+    assert np.nanmax(np.degrees(np.arccos(np.clip(cosang[sp.valid], 0, 1)))) < 0.05
+
+
+def test_auto_points_with_true_labels(small_capture, auto_result):
+    r = auto_result
+    assert r.source == "auto" and len(r.points) > 3000
+    sp = r.calibration.slit_planes
+    # slits that reach only one face of the target have undetermined planes: left out
+    must, may = slits_on_two_faces(small_capture, 60), slits_on_two_faces(small_capture, 1)
+    assert np.all(sp.valid[must]) and not np.any(sp.valid & ~may), r.projector.excluded
+    # residuals of single stripe centres (~0.1-0.2 px at 1.1 mm/px on the half-size rig)
+    assert np.nanmedian(sp.rms_mm) <= 0.3
+    steps = dict(r.points.steps)
+    assert steps["labelled"] <= steps["in linked segments"]
+
+
+@pytest.mark.xfail(
+    reason="goal 0.05 mm per slit (issue 3); half-size stripe centres give 0.23 mm (median)"
+)
+def test_auto_points_plane_rms_goal(auto_result):
+    assert np.nanmedian(auto_result.calibration.slit_planes.rms_mm) <= 0.05
+
+
+@pytest.mark.parametrize("which", ["hand", "auto"])
+def test_triangulation_against_truth(small_capture, hand_result, auto_result, which):
+    res = hand_result if which == "hand" else auto_result
+    cal = res.calibration
+    true_cam, true_planes = truth(small_capture)
+    X, uv, k = scan_truth_points(small_capture, true_cam, true_planes)
+    Y, ok = triangulate(cal.camera, cal.slit_planes.planes, uv, k)
+    cal_ok = cal.slit_planes.valid[k]
+    assert ok[cal_ok].mean() > 0.99
+    ok &= cal_ok
+    err = np.linalg.norm(Y[ok] - X[ok], axis=1)
+    # measured on this capture: hand 0.068 mm, auto (true labels) 0.26 mm RMS: the auto planes
+    # carry the half-size stripe-centre noise (0.1-0.2 px at ~1.1 mm/px)
+    assert rms(err) < (0.1 if which == "hand" else 0.4)
+
+
+@pytest.mark.xfail(
+    reason="goal 0.05 mm RMS (issue 3); measured 0.068 mm with hand readings on the half-size rig"
+)
+def test_triangulation_goal(small_capture, hand_result):
+    cal = hand_result.calibration
+    true_cam, true_planes = truth(small_capture)
+    X, uv, k = scan_truth_points(small_capture, true_cam, true_planes)
+    Y, ok = triangulate(cal.camera, cal.slit_planes.planes, uv, k)
+    assert rms(np.linalg.norm(Y[ok] - X[ok], axis=1)) <= 0.05
+
+
+def test_mislabelled_points_do_not_ruin_planes(small_capture, auto_result):
+    rng = np.random.default_rng(1)
+
+    def bad_labels(image, capture):
+        s = truth_labels(image, capture).copy()
+        flip = (s >= 0) & (s < 24) & (rng.random(len(s)) < 0.08)
+        s[flip] += 1
+        return s
+
+    r = run_calibration(small_capture, source="auto", label_slits=bad_labels)
+    assert r.projector.dropped.sum() > 0.5 * 0.08 * len(r.points)
+    good = auto_result.calibration.slit_planes.planes
+    got = r.calibration.slit_planes.planes
+    got = got * np.sign(np.sum(got[:, :3] * good[:, :3], axis=1))[:, None]  # same orientation
+    X = auto_result.points.xyz
+    k = auto_result.points.slit
+    d = np.einsum("ij,ij->i", X, got[k, :3]) + got[k, 3]
+    d0 = np.einsum("ij,ij->i", X, good[k, :3]) + good[k, 3]
+    assert rms(d - d0) < 0.05
+
+
+def test_slit_without_points_is_reported_not_guessed(small_capture, auto_result):
+    auto_valid = int(auto_result.calibration.slit_planes.valid.sum())
+
+    def labels(image, capture):
+        s = truth_labels(image, capture).copy()
+        s[s == 7] = -1
+        return s
+
+    r = run_calibration(small_capture, source="auto", label_slits=labels)
+    assert not r.calibration.slit_planes.valid[7]
+    assert r.calibration.slit_planes.valid.sum() == auto_valid - 1
+    assert any(re.search(r"slit\(s\) \[[^\]]*\b7\b", n) for n in r.notes), r.notes
+
+
+def test_transfer_labels():
+    lab = transfer_labels(
+        [10.0, 30.0, 10.0], [5, 5, 6], [1, 2, 3], [11.0, 29.0, 20.0, 10.2], [5, 5, 5, 6]
+    )
+    assert lab.tolist() == [1, 2, -1, 3]
+
+
+# --------------------------------------------------------------------------- sources
+def test_auto_falls_back_to_hand_without_identification(small_capture, monkeypatch):
+    monkeypatch.setattr(cal_mod, "_find_identifier", lambda: None)
+    r = run_calibration(small_capture, source="auto")
+    assert r.source == "hand" and "hand readings" in r.notes[0]
+
+
+def test_auto_without_identification_or_hand_readings(small_capture, tmp_path, monkeypatch):
+    monkeypatch.setattr(cal_mod, "_find_identifier", lambda: None)
+    cap = copy_capture(small_capture, tmp_path / "c", lambda t: t.pop("slit_points"))
+    with pytest.raises(CalibrationError, match="--source hand"):
+        calibrate_capture(cap)
+
+
+# --------------------------------------------------------------------------- bad input
+def test_five_markers(small_capture, tmp_path):
+    cap = copy_capture(small_capture, tmp_path / "c", lambda t: t.update(markers=t["markers"][:5]))
+    with pytest.raises(CalibrationError, match=r"found 5 of 5 markers.*needs >= 6"):
+        calibrate_capture(cap, source="hand")
+
+
+def test_markers_on_one_face(small_capture, tmp_path):
+    def one_face(t):
+        f = t["faces"][0]
+        n, d = np.array(f["plane"][:3]), f["plane"][3]
+        t["markers"] = [m for m in t["markers"] if abs(n @ np.array(m["xyz"]) + d) < 0.5]
+
+    cap = copy_capture(small_capture, tmp_path / "c", one_face)
+    with pytest.raises(CalibrationError, match=r"all lie on one plane \(face F1\)"):
+        calibrate_capture(cap, source="hand")
+
+
+def test_marker_hint_off_image_is_skipped(small_capture, tmp_path):
+    def off(t):
+        t["markers"][0]["uv_hint"] = [-50.0, 20.0]
+
+    cap = copy_capture(small_capture, tmp_path / "c", off)
+    r = run_calibration(cap, source="hand")
+    mid = json.loads((cap / "target.json").read_text())["markers"][0]["id"]
+    assert mid in r.camera.rejected and "off the image" in r.camera.rejected[mid]
+    assert mid not in r.calibration.marker_ids
+    assert r.calibration.camera_rms_px <= 0.1
+
+
+def test_missing_marker_image(small_capture, tmp_path):
+    cap = copy_capture(small_capture, tmp_path / "c")
+    (cap / "calibration" / "markers.png").unlink()
+    with pytest.raises(CalibrationError, match=r"missing marker image: .*markers\.png"):
+        calibrate_capture(cap, source="hand")
+
+
+def test_unknown_slit_number_in_hand_readings(small_capture, tmp_path):
+    def bad(t):
+        t["slit_points"][3]["slit"] = 99
+
+    cap = copy_capture(small_capture, tmp_path / "c", bad)
+    with pytest.raises(CaptureError, match=r"slit_points\[3\]\.slit is 99, but the rig has slits"):
+        calibrate_capture(cap, source="hand")
+
+
+# --------------------------------------------------------------------------- CLI and file
+def test_cli_calibrate_round_trip(small_capture, tmp_path, capsys):
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", str(small_capture), "-o", str(out), "--source", "hand"]) == 0
+    text = capsys.readouterr().out
+    n_markers = len(Capture.open(small_capture).target.markers)
+    lo, hi = (int(slits_on_two_faces(small_capture, t).sum()) for t in (60, 1))
+    assert f"markers: {n_markers} of {n_markers} used" in text
+    n_planes = int(re.search(r"slit planes: (\d+) of 25", text).group(1))
+    assert lo <= n_planes <= hi
+    assert "projector matrix" in text and "hand readings" in text
+    cal = Calibration.load(out)
+    rep = json.loads(out.read_text())["report"]
+    assert rep["source"] == "hand" and rep["camera"]["refined_rms_px"] <= 0.1
+    assert cal.slit_planes.valid.sum() == n_planes and cal.refined is not None
+    scan = Capture.open(small_capture).scans[0]
+    h, w = Capture.open(small_capture).image(scan).shape
+    cal.check_image_size((w, h))
+    with pytest.raises(CalibrationError, match="recalibrate"):
+        cal.check_image_size((w * 2, h * 2))
+
+
+def test_cli_errors_are_messages(small_capture, tmp_path, capsys):
+    assert main(["calibrate", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert "capture folder not found" in err and "Traceback" not in err
+    cap = copy_capture(small_capture, tmp_path / "c", lambda t: t.update(markers=t["markers"][:5]))
+    assert main(["calibrate", str(cap), "--source", "hand"]) == 2
+    err = capsys.readouterr().err
+    assert "multislit calibrate: error: found 5 of 5 markers" in err and "Traceback" not in err
