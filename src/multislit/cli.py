@@ -79,6 +79,92 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibrate import format_report, run_calibration, write_calibration
+
+    capture = Path(args.capture)
+    result = run_calibration(capture, source=args.source)
+    out = Path(args.output) if args.output else capture / "calibration.json"
+    write_calibration(result, out)
+    for line in format_report(result):
+        print(line)
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    from .capture import Capture
+    from .errors import MeasurementError
+    from .scan import scan_capture
+
+    cap = Capture.open(args.capture, require_target=False)
+    images = [Path(args.image)] if args.image else None
+    if images is None and not cap.scans:
+        raise MeasurementError(
+            f"no scans in {cap.root / 'scans'} (no *.png images); add scans or use --image FILE"
+        )
+    n = len(images) if images else len(cap.scans)
+    outdir = Path(args.output) if args.output else cap.root / "points"
+    results = scan_capture(
+        cap,
+        calibration=args.calibration,
+        images=images,
+        progress=_progress("scan") if n > 3 else None,
+    )
+    outdir.mkdir(parents=True, exist_ok=True)
+    for name, res in results.items():
+        path = res.write_ply(outdir / f"{name}.ply", comment=f"multislit scan {name}")
+        print(f"{res.summary()} -> {path}")
+    return 0
+
+
+def cmd_holes(args: argparse.Namespace) -> int:
+    from .errors import MeasurementError
+    from .scan import ScanResult, measure_holes_in_scan
+
+    src = Path(args.source)
+    measurements = {}
+    if src.is_dir():
+        from .capture import Capture
+        from .scan import load_capture_calibration, scan_capture
+
+        cap = Capture.open(src, require_target=False)
+        cal = load_capture_calibration(cap, args.calibration)
+        images = [Path(args.image)] if args.image else None
+        results = scan_capture(cap, calibration=cal, images=images)
+        for name, res in results.items():
+            img = cap.image(images[0] if images else cap.root / "scans" / f"{name}.png")
+            measurements[name] = measure_holes_in_scan(
+                res, image=img, calibration=cal, min_slits=args.min_slits
+            )
+    elif src.is_file():
+        res = ScanResult.from_ply(src)
+        measurements[src.stem] = measure_holes_in_scan(res, min_slits=args.min_slits)
+    else:
+        raise MeasurementError(f"not a PLY file or capture folder: {src}")
+    if args.json:
+        print(json.dumps({k: m.to_dict() for k, m in measurements.items()}, indent=1))
+        return 0
+    for name, m in measurements.items():
+        print(
+            f"{name}: plate plane RMS {m.plane_rms:.3f} mm, {len(m.edges)} edge points "
+            f"({m.method}), {len(m.measurable)} measurable hole(s)"
+        )
+        for i, h in enumerate(m.holes, 1):
+            c = ", ".join(f"{x:.2f}" for x in h.centre)
+            if h.measurable:
+                print(
+                    f"  hole {i}: centre ({c}) mm, diameter {h.diameter:.2f} mm, "
+                    f"{h.n_inliers}/{h.n_points} edge points, {h.n_slits} slits, "
+                    f"fit RMS {h.rms:.3f} mm"
+                )
+            else:
+                print(f"  hole {i}: near ({c}) mm, not measurable: {h.reason}")
+        if m.method == "geometric":
+            print("  (edges from the points only; give the capture for sub-pixel edges)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .sim.scene import SCENES
 
@@ -110,6 +196,42 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("rig", help="print the default rig description (JSON) to edit for --rig")
     r.set_defaults(func=cmd_rig)
+
+    c = sub.add_parser("calibrate", help="calibrate camera and projector from a capture folder")
+    c.add_argument("capture", help="capture folder (rig.json, target.json, calibration/*.png)")
+    c.add_argument(
+        "-o", "--output", help="calibration file to write (default CAPTURE/calibration.json)"
+    )
+    c.add_argument(
+        "--source",
+        choices=["auto", "hand"],
+        default="auto",
+        help="points on the slits: auto (from calibration/slits.png, identified slits; falls "
+        "back to the hand readings if identification is unavailable) or hand (target.json "
+        "slit_points, the paper's way); default auto",
+    )
+    c.set_defaults(func=cmd_calibrate)
+
+    sc = sub.add_parser("scan", help="measure the scans of a capture: 3D points as PLY files")
+    sc.add_argument("capture", help="capture folder (rig.json, reference/, scans/)")
+    sc.add_argument("-o", "--output", help="folder for the PLY files (default CAPTURE/points)")
+    sc.add_argument("--image", help="scan only this image (default: every scans/*.png)")
+    sc.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
+    sc.set_defaults(func=cmd_scan)
+
+    ho = sub.add_parser("holes", help="measure holes in a flat plate (paper Table 1)")
+    ho.add_argument(
+        "source",
+        help="a PLY from 'multislit scan' (edges from the points) or a capture folder "
+        "(sub-pixel edges from the images)",
+    )
+    ho.add_argument("--image", help="with a capture: only this scan image")
+    ho.add_argument("--calibration", help="with a capture: calibration file")
+    ho.add_argument(
+        "--min-slits", type=int, default=3, help="fewest slits crossing a measurable hole"
+    )
+    ho.add_argument("--json", action="store_true", help="print the results as JSON")
+    ho.set_defaults(func=cmd_holes)
 
     d = sub.add_parser("demo", help="the paper's experiment end to end on the simulated rig")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
