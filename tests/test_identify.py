@@ -11,8 +11,7 @@ import pytest
 from multislit.capture import Capture
 from multislit.errors import IdentificationError
 from multislit.identify import identify
-
-from .conftest import identification_metrics
+from multislit.sim.evaluate import identification_metrics
 
 
 @pytest.fixture(scope="module")

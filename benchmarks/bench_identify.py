@@ -1,0 +1,68 @@
+"""Slit identification accuracy on simulated scenes against ground truth.
+
+For each rig (25 slits; 49 slits with a grating of twice the pitch) and each scene: the share of
+output points with the correct slit, the share wrong with confidence >= 0.5, the coverage of
+lit stripe-centre pixels, and the time per frame.
+
+Run:  .venv/bin/python benchmarks/bench_identify.py [--scale 0.5] [--seed 11]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from multislit.capture import Capture
+from multislit.identify import identify
+from multislit.reference import prepare_reference
+from multislit.sim.evaluate import identification_metrics
+from multislit.sim.rig import RigSpec
+from multislit.sim.simulate import simulate_capture
+
+SCENES = ["holes", "spheres", "steps", "freeform", "textured"]
+
+
+def rigs(scale: float) -> dict[str, RigSpec]:
+    base = RigSpec()
+    r49 = replace(
+        base, slits=replace(base.slits, num_slits=49, pitch_um=68.0, stripe_sigma_mrad=0.6)
+    )
+    out = {"25 slits": base, "49 slits": r49}
+    return {k: (v.scaled(scale) if scale != 1.0 else v) for k, v in out.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--seed", type=int, default=11)
+    args = ap.parse_args()
+    print(f"identification vs truth, camera scale {args.scale}, seed {args.seed}")
+    print("| rig | scene | points | correct | wrong, conf >= 0.5 | coverage | ms/frame |")
+    print("|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as d:
+        for name, spec in rigs(args.scale).items():
+            cap = Capture.open(
+                simulate_capture(Path(d) / name.replace(" ", ""), SCENES, spec, seed=args.seed)
+            )
+            ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+            for p in cap.scans:
+                img = cap.image(p)
+                t = time.perf_counter()
+                ident = identify(img, ref)
+                dt = time.perf_counter() - t
+                m = identification_metrics(
+                    ident, np.load(cap.root / "truth" / f"{p.stem}.npz")["slit"]
+                )
+                print(
+                    f"| {name} | {p.stem} | {m['points']} | {100 * m['correct']:.2f} % | "
+                    f"{100 * m['wrong_confident']:.2f} % | {100 * m['coverage']:.1f} % | {1e3 * dt:.0f} |"
+                )
+
+
+if __name__ == "__main__":
+    main()
