@@ -322,3 +322,30 @@ def test_cli_errors_are_messages(small_capture, tmp_path, capsys):
     assert main(["calibrate", str(cap), "--source", "hand"]) == 2
     err = capsys.readouterr().err
     assert "multislit calibrate: error: found 5 of 5 markers" in err and "Traceback" not in err
+
+
+def _few_labels(truth_capture: Path):
+    """A labeller that identifies only two slits (as identification on a hard target might)."""
+
+    def few(image, capture):
+        cap = Capture.open(truth_capture)
+        s = truth_labels(image, cap).copy()
+        s[~np.isin(s, [5, 12])] = -1
+        return s
+
+    return few
+
+
+def test_unsupported_automatic_planes_fall_back_to_hand_readings(small_capture):
+    r = run_calibration(small_capture, source="auto", label_slits=_few_labels(small_capture))
+    assert r.source == "hand"
+    assert any("automatic projector calibration failed" in n for n in r.notes), r.notes
+    assert r.calibration.slit_planes.valid.sum() >= 10
+
+
+def test_unsupported_automatic_planes_without_hand_readings_is_an_error(small_capture, tmp_path):
+    cap = copy_capture(small_capture, tmp_path / "c", lambda t: t.pop("slit_points"))
+    with pytest.raises(
+        CalibrationError, match="automatic projector calibration failed.*hand readings"
+    ):
+        run_calibration(cap, source="auto", label_slits=_few_labels(small_capture))

@@ -910,6 +910,26 @@ def _nan_none(x: Any) -> Any:
     return x
 
 
+def auto_fit_problem(fit: ProjectorFit, points: SlitPointSet, num_slits: int) -> str | None:
+    """Why slit planes from automatic points cannot be trusted, or None when they can.
+
+    Automatic points are noisy measurements labelled by identification; planes are trusted only
+    when most slits get one, each from enough inliers that leave a real (non-zero) residual.
+    A plane that fits its points exactly was fitted to too few points to check itself.
+    """
+    sp = fit.slit_planes
+    s = np.asarray(points.slit, dtype=np.intp)
+    inliers = np.bincount(s[fit.inlier], minlength=num_slits)
+    ok = sp.valid & (inliers >= MIN_AUTO_POINTS) & (np.nan_to_num(sp.rms_mm) > 1e-6)
+    need = max(3, math.ceil(0.5 * num_slits))
+    if ok.sum() < need:
+        return (
+            f"only {int(ok.sum())} of {num_slits} slits got a well-supported plane from the "
+            f"automatically identified stripes (need >= {need})"
+        )
+    return None
+
+
 def run_calibration(
     capture: str | Path | Capture,
     source: str = "auto",
@@ -954,7 +974,28 @@ def run_calibration(
             pts = auto_slit_points(cap, cam.refined, fn, edge_margin_px)
     if used_source == "hand":
         pts = hand_slit_points(cap)
-    fit = fit_projector(pts, cap.num_slits, outlier_sigma)
+    try:
+        fit = fit_projector(pts, cap.num_slits, outlier_sigma)
+        problem = auto_fit_problem(fit, pts, cap.num_slits) if used_source == "auto" else None
+    except CalibrationError as exc:
+        if used_source != "auto":
+            raise
+        problem = str(exc)
+    if problem is not None:
+        # never return planes the data do not support: fall back to the hand readings, or stop
+        if cap.target is not None and cap.target.slit_points:
+            used_source = "hand"
+            notes.append(
+                f"automatic projector calibration failed: {problem}; used the hand readings "
+                "of target.json"
+            )
+            pts = hand_slit_points(cap)
+            fit = fit_projector(pts, cap.num_slits, outlier_sigma)
+        else:
+            raise CalibrationError(
+                f"automatic projector calibration failed: {problem}; add hand readings of points "
+                "on the slits to target.json (slit_points) and use --source hand"
+            )
     for j, why in fit.excluded:
         if why != "no points":
             notes.append(f"slit {j} left out: {why}")
