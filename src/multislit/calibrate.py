@@ -14,7 +14,9 @@ The pipeline (paper section 5, Figs. 15, 17, 18):
      read off the target's scales);
    - ``"auto"``: from ``calibration/slits.png``. Stripe centres (:func:`multislit.slits.
      extract_slits`) are labelled with their slit numbers by a ``label_slits(image, capture)``
-     callable (by default the identification of :mod:`multislit.identify`), each centre's line
+     callable (by default :func:`multislit.calibrate_labels.label_by_order`: the slits' order
+     along each row on the target, anchored by the confident dot identifications of
+     :mod:`multislit.identify`), each centre's line
      of sight (refined camera, distortion removed) is intersected with the target face it
      falls on, and centres that are not trustworthy are dropped: outside every face, within
      ``edge_margin_px`` of a face's outline in the image (the stripe bends there), where the
@@ -437,12 +439,23 @@ def hand_slit_points(capture: str | Path | Capture) -> SlitPointSet:
 def _find_identifier() -> LabelFn | None:
     """A ``label_slits(image, capture)`` from :mod:`multislit.identify`, None if not installed.
 
-    A module function taking ``(image, capture)`` (one of :data:`_IDENTIFY_NAMES` but
+    By default :func:`multislit.calibrate_labels.label_by_order` (stripe order in each row,
+    anchored by the dot identification). Without it, a module function of
+    :mod:`multislit.identify` taking ``(image, capture)`` (one of :data:`_IDENTIFY_NAMES` but
     ``identify``) is used as is; otherwise ``identify(image, reference)`` is called with the
     capture's reference images prepared by :func:`multislit.reference.prepare_reference`.
     """
     if importlib.util.find_spec("multislit.identify") is None:
         return None
+    if (
+        importlib.util.find_spec("multislit.calibrate_labels") is not None
+        and importlib.util.find_spec("multislit.reference") is not None
+    ):
+        by_order = getattr(
+            importlib.import_module("multislit.calibrate_labels"), "label_by_order", None
+        )
+        if callable(by_order):
+            return by_order
     mod = importlib.import_module("multislit.identify")
     for name in _IDENTIFY_NAMES[:-1]:
         fn = getattr(mod, name, None)

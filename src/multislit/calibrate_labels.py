@@ -1,0 +1,304 @@
+"""Slit labels for the automatic projector calibration: stripe order plus dot identification.
+
+The dot identification (:mod:`multislit.identify`) labels the stripe centres of
+``calibration/slits.png`` reliably where it labels them, but the target's 45 degree faces
+foreshorten the dot pattern, so it leaves about half of the centres (nearly all of the ramp)
+unlabelled, and the slits then lie on one face each: their planes are undetermined.
+
+:func:`label_by_order` uses the order of the stripes instead. The target is concave (two walls
+and a ramp meeting in a corner), so along an image row the stripes on it appear in their slit
+order, without occlusions. Per row, the centres on the target's faces are sorted by u and cut
+into *runs* where the gap to the next centre is far above the local spacing (a marker's dark
+square or a shadow hides a stripe there) or far below it (a double detection). Within a run,
+consecutive centres belong to consecutive slits, so each run only needs one offset
+``slit - rank``:
+
+1. from the dots: the confidence-weighted mode of ``slit - rank`` over the run's identified
+   centres, accepted only when enough of them agree (:class:`OrderParams`);
+2. from the rows above and below (repeated until nothing changes): a centre of an unlabelled
+   run whose nearest centre in the neighbouring row (within a stripe width) is labelled votes
+   for that label; again the run needs agreeing votes.
+
+Runs without agreeing evidence stay unlabelled (-1); nothing is guessed.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .capture import Capture
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class OrderParams:
+    """Tuning of :func:`label_by_order`.
+
+    max_gap_ratio : a gap above this many times the local stripe spacing ends a run
+    min_gap_ratio : centres closer than this many times the local spacing to a neighbour in the
+        row (double detections) are left out and end a run
+    spacing_window : gaps either side whose median is the local spacing
+    min_agree : least fraction (by weight) of a run's votes that must agree on its offset
+    min_votes : least number of agreeing votes for a run's offset
+    max_rounds : rounds of row-to-row propagation
+    match_px : a neighbouring-row centre votes when it lies within this many px (default: the
+        stripe width, at least 1 px)
+    """
+
+    max_gap_ratio: float = 1.6
+    min_gap_ratio: float = 0.6
+    spacing_window: int = 3
+    min_agree: float = 0.8
+    min_votes: int = 3
+    max_rounds: int = 2000
+    match_px: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class OrderLabels:
+    """Result of :func:`label_by_order`; accepted as is by the calibration's labeller interface.
+
+    u, v : (K,) float64, px, stripe centres (extraction of the calibration settings)
+    slit : (K,) int, slit number, -1 where unlabelled
+    face : (K,) int, target face of the centre (-1: none; 0 for all when the faces are unknown)
+    run : (K,) int, run id (-1: centre left out of the runs)
+    dot_slit : (K,) int, the dot identification's label transferred to the centres (-1: none)
+    stats : counts for reports
+    """
+
+    u: F64
+    v: F64
+    slit: NDArray[np.intp]
+    face: NDArray[np.intp]
+    run: NDArray[np.intp]
+    dot_slit: NDArray[np.intp]
+    stats: dict[str, int] = field(default_factory=dict)
+
+
+def _nearest_in_row(u_from: F64, v_from: F64, u: F64, v: F64, tol_px: float) -> NDArray[np.intp]:
+    """Index of the nearest (u_from, v_from) point in the same row within ``tol_px`` (-1: none).
+
+    A point with two candidates within ``tol_px`` gets -1 (ambiguous).
+    """
+    from .calibrate import transfer_labels
+
+    return transfer_labels(u_from, v_from, np.arange(len(u_from)), u, v, tol_px=tol_px)
+
+
+def _runs(
+    u: F64, v: F64, ok: NDArray[np.bool_], p: OrderParams
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Run id and rank in the run of each centre (-1 for centres left out)."""
+    n = len(u)
+    run = np.full(n, -1, np.intp)
+    rank = np.full(n, -1, np.intp)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return run, rank
+    order = idx[np.lexsort((u[idx], v[idx]))]
+    uu, vv = u[order], v[order]
+    m = len(order)
+    same = vv[1:] == vv[:-1]
+    gap = np.where(same, uu[1:] - uu[:-1], np.nan)  # gap i: between i and i+1
+    # local spacing either side: median of the ``w`` gaps before / after in the row. A gap is
+    # judged against the smaller one: where the spacing changes (a face edge) a hidden stripe
+    # still makes the gap >= 2x the smaller spacing.
+    w = p.spacing_window
+    rowid = np.cumsum(np.r_[0, ~same])[:-1]  # row of each gap (gap i: centres i, i+1)
+    pad = np.concatenate([np.full(w, np.nan), gap, np.full(w, np.nan)])
+    rpad = np.concatenate([np.full(w, -1), rowid, np.full(w, -1)])
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * w + 1)
+    rwin = np.lib.stride_tricks.sliding_window_view(rpad, 2 * w + 1)
+    win = np.where(rwin == rowid[:, None], win, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: NaN spacing
+        before = np.nanmedian(win[:, :w], axis=1)
+        after = np.nanmedian(win[:, w + 1 :], axis=1)
+        spacing = np.fmin(before, after)
+    small = same & (gap < p.min_gap_ratio * spacing)
+    big = ~same | ~(gap <= p.max_gap_ratio * spacing)  # NaN spacing (lonely pair): cut
+    bad = np.zeros(m, bool)
+    bad[:-1] |= small
+    bad[1:] |= small
+    cut = np.ones(m, bool)  # cut before centre i
+    cut[1:] = big | small | bad[:-1] | bad[1:]
+    rid = np.cumsum(cut) - 1
+    start = np.flatnonzero(cut)
+    rk = np.arange(m) - start[rid]
+    keep = ~bad
+    run[order[keep]] = rid[keep]
+    rank[order[keep]] = rk[keep]
+    return run, rank
+
+
+def _run_offsets(
+    run: NDArray[np.intp],
+    rank: NDArray[np.intp],
+    vote: NDArray[np.intp],
+    weight: F64,
+    n_runs: int,
+    p: OrderParams,
+) -> NDArray[np.intp]:
+    """Per run, the agreed offset ``slit - rank`` of the voting centres, or a sentinel."""
+    NONE = np.iinfo(np.intp).min
+    out = np.full(n_runs, NONE, np.intp)
+    sel = (vote >= 0) & (run >= 0) & (weight > 0)
+    if not sel.any():
+        return out
+    r, off, wt = run[sel], vote[sel] - rank[sel], weight[sel]
+    lo = int(off.min())
+    span = int(off.max()) - lo + 1
+    key = r.astype(np.int64) * span + (off - lo)
+    uk, inv = np.unique(key, return_inverse=True)
+    kw = np.bincount(inv, weights=wt)
+    kc = np.bincount(inv)
+    kr = uk // span
+    total_w = np.bincount(r, weights=wt, minlength=n_runs)
+    # best key per run: sort by (run, weight) and take the last of each run
+    o = np.lexsort((kw, kr))
+    last = np.r_[kr[o][1:] != kr[o][:-1], True]
+    best = o[last]
+    br = kr[best]
+    ok = (kw[best] >= p.min_agree * total_w[br]) & (kc[best] >= p.min_votes)
+    out[br[ok]] = (uk[best][ok] % span + lo).astype(np.intp)
+    return out
+
+
+def _apply(
+    run: NDArray[np.intp], rank: NDArray[np.intp], offset: NDArray[np.intp], num_slits: int
+) -> NDArray[np.intp]:
+    """Labels rank + offset of the runs with an offset; a run leaving 0..N-1 stays unlabelled."""
+    NONE = np.iinfo(np.intp).min
+    n_runs = len(offset)
+    slit = np.full(len(run), -1, np.intp)
+    has = run >= 0
+    if not has.any():
+        return slit
+    lab = np.where(offset[run[has]] != NONE, rank[has] + offset[run[has]], -1)
+    bad_run = np.zeros(n_runs, bool)
+    out_of_range = (offset[run[has]] != NONE) & ((lab < 0) | (lab >= num_slits))
+    bad_run[run[has][out_of_range]] = True
+    lab[bad_run[run[has]]] = -1
+    slit[has] = lab
+    return slit
+
+
+def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
+    from .identify import identify
+    from .reference import prepare_reference
+
+    if reference is None:
+        refs = [cap.image(q) for q in cap.references]
+        reference = prepare_reference(refs, cap.num_slits, names=[q.name for q in cap.references])
+    return identify(image, reference)
+
+
+def _faces(cap: Capture, uv: F64, camera: Any) -> NDArray[np.intp]:
+    from .calibrate import calibrate_camera_from_capture
+    from .calibration import points_on_faces
+
+    if cap.target is None or not cap.target.faces:
+        return np.zeros(len(uv), np.intp)
+    if camera is None:
+        camera = calibrate_camera_from_capture(cap, use_stripes=False).refined
+    return points_on_faces(camera, uv, cap.target.faces)[1]
+
+
+def label_by_order(
+    image: NDArray,
+    capture: str | Path | Capture,
+    identification: Any = None,
+    reference: Any = None,
+    camera: Any = None,
+    params: OrderParams | None = None,
+    extract: dict[str, Any] | None = None,
+) -> OrderLabels:
+    """Label the stripe centres of a calibration image by their order in the row and the dots.
+
+    Parameters
+    ----------
+    image : (H, W) the calibration slit image (``calibration/slits.png``)
+    capture : capture folder or Capture (references, faces, num_slits)
+    identification : an :class:`~multislit.identify.Identification` of ``image`` (default: made
+        here from the capture's references, or from ``reference``)
+    reference : a prepared :class:`~multislit.reference.ReferenceSet` (default: prepared here)
+    camera : a calibrated camera to tell which face each centre is on (default: calibrated here
+        from the markers); without target faces all centres count as one surface
+    params : :class:`OrderParams`
+    extract : keyword arguments of :func:`multislit.slits.extract_slits` (default: the
+        calibration's :data:`multislit.calibrate.CALIBRATION_EXTRACT`)
+
+    Returns
+    -------
+    OrderLabels (u, v, slit, ...), -1 for centres left unlabelled
+    """
+    from .calibrate import CALIBRATION_EXTRACT
+    from .slits import extract_slits
+
+    p = params or OrderParams()
+    cap = capture if isinstance(capture, Capture) else Capture.open(capture)
+    img = np.asarray(image)
+    n_slits = int(cap.num_slits)
+    ex = extract_slits(img, **(CALIBRATION_EXTRACT if extract is None else extract))
+    u, v = np.asarray(ex.u, float), np.asarray(ex.v, float)
+    K = len(u)
+    sw = ex.stripe_width_px if math.isfinite(ex.stripe_width_px) else 3.0
+    tol = p.match_px if p.match_px is not None else max(1.0, sw)
+    empty = np.full(K, -1, np.intp)
+    if K == 0:
+        return OrderLabels(u, v, empty, empty, empty, empty, {"centres": 0})
+    ident = identification if identification is not None else _identification(img, cap, reference)
+    iu, iv = np.asarray(ident.u, float), np.asarray(ident.v, float)
+    islit = np.asarray(ident.slit).astype(np.intp)
+    iconf = np.asarray(ident.confidence, float)
+    good = islit >= 0
+    j = _nearest_in_row(iu[good], iv[good], u, v, max(1.0, 0.8 * sw))
+    dot_slit = np.where(j >= 0, islit[good][np.maximum(j, 0)], -1).astype(np.intp)
+    dot_conf = np.where(j >= 0, iconf[good][np.maximum(j, 0)], 0.0)
+
+    face = _faces(cap, np.stack([u, v], axis=1), camera)
+    run, rank = _runs(u, v, (face >= 0) & (np.asarray(ex.segment) >= 0), p)
+    n_runs = int(run.max()) + 1 if (run >= 0).any() else 0
+    offset = _run_offsets(run, rank, dot_slit, dot_conf, n_runs, p)
+    slit = _apply(run, rank, offset, n_slits)
+    n_dots = int((slit >= 0).sum())
+
+    # row-to-row propagation into runs the dots left unlabelled
+    NONE = np.iinfo(np.intp).min
+    rows = v.astype(np.int64)
+    for _ in range(p.max_rounds):
+        lab = slit >= 0
+        free = (run >= 0) & ~lab & (offset[np.maximum(run, 0)] == NONE)
+        if not free.any() or not lab.any():
+            break
+        vote = np.full(K, -1, np.intp)
+        for dv in (-1, 1):
+            jj = _nearest_in_row(u[lab], rows[lab] - dv, u[free], rows[free], tol)
+            cand = np.where(jj >= 0, slit[lab][np.maximum(jj, 0)], -1)
+            fi = np.flatnonzero(free)
+            cur = vote[fi]
+            vote[fi] = np.where(cur < 0, cand, np.where((cand >= 0) & (cand != cur), -2, cur))
+        vote[vote == -2] = -1
+        new = _run_offsets(run, rank, vote, np.ones(K), n_runs, p)
+        took = (new != NONE) & (offset == NONE)
+        if not took.any():
+            break
+        offset = np.where(took, new, offset)
+        slit = _apply(run, rank, offset, n_slits)
+    stats = {
+        "centres": K,
+        "on faces": int((face >= 0).sum()),
+        "dot labels": int((dot_slit >= 0).sum()),
+        "runs": n_runs,
+        "labelled by dots": n_dots,
+        "labelled": int((slit >= 0).sum()),
+    }
+    return OrderLabels(u, v, slit, face, run, dot_slit, stats)
