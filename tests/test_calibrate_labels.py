@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -12,8 +9,9 @@ from multislit.calibrate import run_calibration
 from multislit.calibrate_labels import OrderParams, _run_offsets, _runs, label_by_order
 from multislit.calibration import rms
 from multislit.capture import Capture
-from multislit.geometry import camera_from_dict
 from multislit.triangulation import triangulate
+
+from .test_calibrate import scan_truth_points, truth
 
 
 def label_correctness(u, v, slit, truth_slit) -> tuple[float, int]:
@@ -29,21 +27,6 @@ def label_correctness(u, v, slit, truth_slit) -> tuple[float, int]:
     correct = (cand == slit[ok][:, None]).any(1)
     wrong = ~correct & (cand >= 0).any(1)
     return float(correct.mean()), int(wrong.sum())
-
-
-def truth(capture: Path):
-    m = json.loads((capture / "truth" / "models.json").read_text())
-    return camera_from_dict(m["camera"]), np.array(m["projector"]["planes"])
-
-
-def scan_truth_points(capture: Path, camera, planes, scan: str = "holes"):
-    tr = np.load(capture / "truth" / f"{scan}.npz")
-    vv, uu = np.nonzero(tr["slit"] >= 0)
-    X = tr["xyz"][vv, uu].astype(float)
-    k = tr["slit"][vv, uu].astype(np.intp)
-    X = X - (np.einsum("ij,ij->i", X, planes[k, :3]) + planes[k, 3])[:, None] * planes[k, :3]
-    sel = np.arange(0, len(X), 7)
-    return X[sel], camera.project(X[sel]), k[sel]
 
 
 @pytest.fixture(scope="module")
