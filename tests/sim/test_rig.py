@@ -54,3 +54,9 @@ def test_bad_rig_descriptions(d, message):
 def test_missing_rig_file(tmp_path):
     with pytest.raises(MultislitError, match="rig file not found"):
         RigSpec.load(tmp_path / "nope.json")
+
+
+@pytest.mark.parametrize("factor", [0, -1.0])
+def test_bad_scale_factor(factor):
+    with pytest.raises(MultislitError, match="scale factor must be a positive number"):
+        RigSpec().scaled(factor)

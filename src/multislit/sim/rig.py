@@ -157,6 +157,10 @@ class RigSpec:
         Used for fast tests: ``RigSpec().scaled(0.5)`` renders 640x512 images whose stripes and dots
         are as many pixels wide as the full-size rig's.
         """
+        if not (isinstance(factor, int | float) and factor > 0):
+            raise MultislitError(
+                f"scale factor must be a positive number (0.5: half size), got {factor!r}"
+            )
         cam = replace(
             self.camera,
             image_size=(
