@@ -192,13 +192,14 @@ def _apply(
 
 
 def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
-    from .identify import identify
+    from .identify import IdentifyParams, identify
     from .reference import prepare_reference
 
     if reference is None:
         refs = [cap.image(q) for q in cap.references]
         reference = prepare_reference(refs, cap.num_slits, names=[q.name for q in cap.references])
-    return identify(image, reference)
+    # the anchors must be the dots' own evidence, not identification's order fill
+    return identify(image, reference, IdentifyParams(order_fill=False))
 
 
 def _faces(cap: Capture, uv: F64, camera: Any) -> NDArray[np.intp]:

@@ -42,6 +42,8 @@ class IdentifyParams:
         slits on all its samples (1, the default = score every slit everywhere). Measured with
         benchmarks/bench_identify.py: coarse_every=3, keep 3 halves the time at 25 slits (and
         ~2.5x at 49) but costs coverage and correctness on curved and occluded scenes
+    order_fill : give segments the dots left unidentified the slit number their place in the
+        row implies, when the dot-identified stripes around them agree (confidence <= 0.6)
     trim_rows : rows at each end of a segment left unidentified (junctions of two stripes)
     references : "nearest" (compare each hypothesis in the reference whose board lies nearest
         the surface) or "all" (best over all references; slower)
@@ -61,6 +63,7 @@ class IdentifyParams:
     coarse_every: int = 1
     keep_hypotheses: int = 3
     trim_rows: int = 2
+    order_fill: bool = True
     min_score: float = 0.15
     min_confidence: float = 0.30
     min_samples: int = 2
@@ -339,6 +342,60 @@ def _order_violations(
     return {(int(gg[i]), int(gg[i + 1])) for i in np.flatnonzero(bad)}
 
 
+def _fill_by_order(
+    u: F64, v: F64, seg: I64, slit: I64, conf: F64, usable: NDArray[np.bool_], num_slits: int
+) -> dict[int, tuple[int, float]]:
+    """Slit numbers for segments the dots left unidentified, from the order along the rows.
+
+    Along a row, stripes closer than ~1.6 local spacings belong to consecutive slits (a larger
+    gap or a double detection cuts the run); each run's offset ``slit - rank`` must be agreed by
+    its dot-identified points (>= 80 %, >= 3 votes, from >= 2 different stripes;
+    :mod:`multislit.calibrate_labels`), and only between dot-identified stripes of the run (no
+    extrapolation). A segment without a dot label takes the run label only
+    if >= 95 % of its points carry the same one;
+    its confidence is that agreement times 0.6: order-inferred labels never count as certain.
+    """
+    from .calibrate_labels import OrderParams, _apply, _run_offsets, _runs
+
+    op = OrderParams()
+    ok = seg >= 0
+    run, rank = _runs(u, v, ok, op)
+    n_runs = int(run.max()) + 1 if (run >= 0).any() else 0
+    if n_runs == 0:
+        return {}
+    vote = np.where(slit >= 0, slit, -1).astype(np.intp)
+    offset = _run_offsets(run, rank, vote, np.where(slit >= 0, conf, 0.0), n_runs, op)
+    # an offset must be confirmed by the dots of >= 2 different stripes (segments) of the run
+    voted = (vote >= 0) & (run >= 0)
+    pairs = np.unique(np.stack([run[voted], seg[voted]], axis=1), axis=0)
+    n_seg_votes = (
+        np.bincount(pairs[:, 0], minlength=n_runs) if len(pairs) else np.zeros(n_runs, int)
+    )
+    offset = np.where(n_seg_votes >= 2, offset, np.iinfo(np.intp).min)
+    lab = _apply(run, rank, offset, num_slits)
+    # interpolate only: a point is labelled only between dot-identified stripes of its run
+    big = np.iinfo(np.intp).max
+    lo = np.full(n_runs, big, np.intp)
+    hi = np.full(n_runs, -1, np.intp)
+    np.minimum.at(lo, run[voted], rank[voted])
+    np.maximum.at(hi, run[voted], rank[voted])
+    inside = (run >= 0) & (rank > lo[np.maximum(run, 0)]) & (rank < hi[np.maximum(run, 0)])
+    lab = np.where(inside, lab, -1)
+    out: dict[int, tuple[int, float]] = {}
+    free = ok & (slit < 0) & usable
+    for sid in np.unique(seg[free]):
+        m = seg == sid
+        labs = lab[m]
+        labs = labs[labs >= 0]
+        if labs.size < 5 or labs.size < 0.5 * m.sum():
+            continue
+        vals, cnt = np.unique(labs, return_counts=True)
+        agree = cnt.max() / labs.size
+        if agree >= 0.95:
+            out[int(sid)] = (int(vals[cnt.argmax()]), float(0.6 * agree))
+    return out
+
+
 def identify(
     image: ArrayLike,
     reference: ReferenceSet,
@@ -486,6 +543,12 @@ def identify(
             lut_k[sid] = -1
             lut_c[sid] = 0.0
             dropped["order"] += 1
+        slit[has] = lut_k[seg[has]]
+        conf[has] = lut_c[seg[has]]
+    if p.order_fill:
+        filled = _fill_by_order(ex.u, ex.v, seg, slit, conf, has, reference.num_slits)
+        for sid, (k, c) in filled.items():
+            lut_k[sid], lut_c[sid] = k, c
         slit[has] = lut_k[seg[has]]
         conf[has] = lut_c[seg[has]]
     conf[slit < 0] = 0.0
