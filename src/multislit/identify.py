@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import IdentificationError
+from .order import OrderParams, _apply, _run_offsets, _runs
 from .reference import (
     ReferenceSet,
     curve_u,
@@ -350,13 +351,11 @@ def _fill_by_order(
     Along a row, stripes closer than ~1.6 local spacings belong to consecutive slits (a larger
     gap or a double detection cuts the run); each run's offset ``slit - rank`` must be agreed by
     its dot-identified points (>= 80 %, >= 3 votes, from >= 2 different stripes;
-    :mod:`multislit.calibrate_labels`), and only between dot-identified stripes of the run (no
+    :mod:`multislit.order`), and only between dot-identified stripes of the run (no
     extrapolation). A segment without a dot label takes the run label only
     if >= 95 % of its points carry the same one;
     its confidence is that agreement times 0.6: order-inferred labels never count as certain.
     """
-    from .calibrate_labels import OrderParams, _apply, _run_offsets, _runs
-
     op = OrderParams()
     ok = seg >= 0
     run, rank = _runs(u, v, ok, op)
