@@ -13,6 +13,7 @@ from multislit.calibration import (
     SCHEMA,
     Calibration,
     ProjectorMatrix,
+    SlitPlanes,
     calibrate_dlt,
     decompose_camera,
     find_marker_corners,
@@ -379,17 +380,108 @@ def test_slit_planes_reports_short_and_collinear_slits():
     rng = np.random.default_rng(11)
     planes_true, _, _ = grating_planes(num=5)
     X, s = points_on_planes(rng, planes_true, per_slit=20)
-    # slit 1: only 2 points; slit 3: collinear points (on a vertical line)
+    # slit 1: only 2 points; slit 3: collinear points (on a vertical line, in its plane)
     keep = (s != 1) | (np.arange(len(s)) % 20 < 2)
     X, s = X[keep].copy(), s[keep]
     line = s == 3
     X[line] = X[line][0] + np.linspace(0, 1, line.sum())[:, None] * [0.0, 100.0, 0.0]
+    free = fit_slit_planes(X, s, 6, common_axis=False)
+    assert dict(free.excluded).keys() == {1, 3}
+    assert "2 point" in dict(free.excluded)[1] and "collinear" in dict(free.excluded)[3]
+    assert free.valid.tolist() == [True, False, True, False, True, False]
+    assert free.counts.tolist() == [20, 2, 20, 20, 20, 0]
+    assert np.nanmax(free.rms_mm) < 1e-6 and free.from_axis == ()
+    # with the common axis, the line and the axis span slit 3's plane
     sp = fit_slit_planes(X, s, 6)
-    assert dict(sp.excluded).keys() == {1, 3}
-    assert "2 point" in dict(sp.excluded)[1] and "collinear" in dict(sp.excluded)[3]
-    assert sp.valid.tolist() == [True, False, True, False, True, False]
-    assert sp.counts.tolist() == [20, 2, 20, 20, 20, 0]
+    assert dict(sp.excluded).keys() == {1} and sp.from_axis == (3,)
+    assert sp.valid.tolist() == [True, False, True, True, True, False]
+    pl = sp.planes[3] * np.sign(sp.planes[3, :3] @ planes_true[3, :3])
+    np.testing.assert_allclose(pl, planes_true[3], atol=1e-7)
     assert np.nanmax(sp.rms_mm) < 1e-6
+
+
+def _angle_mrad(planes, truth_planes):
+    c = np.abs(np.sum(planes[:, :3] * truth_planes[:, :3], axis=1))
+    return 1e3 * np.arccos(np.clip(c, 0, 1))
+
+
+def _on_line(rng, plane, axis, n, direction, noise):
+    """n points along a 200 mm line in ``plane`` ~550 mm from the axis, noisy across the plane."""
+    inplane = np.cross(plane[:3], [0.0, 1.0, 0.0])
+    inplane *= -np.sign(inplane[0])
+    p0 = axis + 550.0 * inplane
+    d = np.asarray(direction, float) @ np.stack([inplane, [0.0, 1.0, 0.0]])
+    d /= np.linalg.norm(d)
+    t = np.linspace(-100, 100, n)[:, None]
+    return p0 + t * d + noise * rng.normal(size=(n, 1)) * plane[:3]
+
+
+def test_slits_seen_along_one_line_get_the_plane_through_the_axis():
+    rng = np.random.default_rng(21)
+    planes_true, _, axis = grating_planes(num=9)
+    noise = 0.02
+    X, s = points_on_planes(rng, planes_true, per_slit=60, noise=noise)
+    # slits 0 and 3 on lines parallel to the axis (a vertical wall), slit 8 on a slanted line
+    for j, direction in [(0, (0.0, 1.0)), (3, (0.0, 1.0)), (8, (1.0, 0.7))]:
+        X[s == j] = _on_line(rng, planes_true[j], axis, 60, direction, noise)
+    sp = fit_slit_planes(X, s, 9, min_width_mm=0.5)
+    assert sp.from_axis == (0, 3, 8) and sp.excluded == ()
+    ang = _angle_mrad(sp.planes, planes_true)
+    # as accurate as the slits seen on two faces; their residuals are the noise
+    assert ang[[0, 3, 8]].max() < max(0.2, 2 * np.delete(ang, [0, 3, 8]).max()), ang
+    np.testing.assert_allclose(sp.rms_mm[[0, 3, 8]], noise, rtol=0.35)
+    # without the common axis a line does not determine a plane
+    free = fit_slit_planes(X, s, 9, common_axis=False, min_width_mm=0.5)
+    assert dict(free.excluded).keys() == {0, 3, 8} and free.from_axis == ()
+    assert all("one line" in r and "common_axis=False" in r for _, r in free.excluded)
+    # the JSON keeps which planes come from the axis
+    assert SlitPlanes.from_json(sp.to_json()).from_axis == (0, 3, 8)
+
+
+def test_line_slits_stay_excluded_when_the_axis_cannot_place_them():
+    rng = np.random.default_rng(22)
+    planes_true, _, axis = grating_planes(num=9)
+    X, s = points_on_planes(rng, planes_true, per_slit=40, noise=0.02)
+    # slit 3's points are those of slit 4's plane (mislabelled): one slit spacing off
+    X[s == 3] = _on_line(rng, planes_true[4], axis, 40, (0.0, 1.0), 0.02)
+    # slit 6's points run along the axis itself, 5 mm from it: no angle about the axis
+    inplane = np.cross(planes_true[6, :3], [0.0, 1.0, 0.0])
+    X[s == 6] = axis + 5.0 * inplane + np.linspace(-100, 100, 40)[:, None] * [0.0, 1.0, 0.0]
+    # slit 7: two points only
+    keep = (s != 7) | (np.arange(len(s)) % 40 < 2)
+    X, s = X[keep], s[keep]
+    sp = fit_slit_planes(X, s, 9, min_width_mm=0.5)
+    why = dict(sp.excluded)
+    assert sp.from_axis == () and why.keys() == {3, 6, 7}, why
+    assert "mislabelled" in why[3] and "slit spacings" in why[3]
+    assert "of the common axis" in why[6] and "undetermined" in why[6]
+    assert "only 2 point(s)" in why[7]
+    assert not sp.valid[[3, 6, 7]].any() and np.isnan(sp.rms_mm[[3, 6, 7]]).all()
+    # an axis from two slits only is not trusted to place a line
+    two = np.isin(s, [0, 1, 3])
+    sp2 = fit_slit_planes(X[two], s[two], 9, min_width_mm=0.5)
+    assert "fitted from only 2 slit(s)" in dict(sp2.excluded)[3], sp2.excluded
+    with pytest.raises(CalibrationError, match="min_width_mm"):
+        fit_slit_planes(X, s, 9, min_width_mm=-1.0)
+
+
+def test_slit_plane_weights():
+    rng = np.random.default_rng(23)
+    planes_true, _, _ = grating_planes(num=7)
+    X, s = points_on_planes(rng, planes_true, per_slit=40, noise=0.01)
+    bad = np.arange(len(s)) % 10 == 0
+    Xb = X.copy()
+    Xb[bad] += 3.0 * planes_true[s[bad], :3]  # 3 mm off their planes
+    plain = fit_slit_planes(Xb, s, 7)
+    w = fit_slit_planes(Xb, s, 7, weights=np.where(bad, 0.0, 1.0))
+    assert (
+        _angle_mrad(w.planes, planes_true).max()
+        < 0.5 * _angle_mrad(plain.planes, planes_true).max()
+    )
+    # the reported residual is the plain RMS of all points
+    assert np.all(w.rms_mm > 0.5)
+    with pytest.raises(CalibrationError, match="weights must be"):
+        fit_slit_planes(X, s, 7, weights=np.ones(3))
 
 
 # --------------------------------------------------------------------------- faces

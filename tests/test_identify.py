@@ -5,13 +5,32 @@ Issue 4 asks, per scene: >= 99.5 % of output points correct, <= 0.1 % wrong with
 the current method meets it; the measured shortfalls are recorded in the issue notes.
 """
 
+import warnings
+
 import numpy as np
 import pytest
 
+import multislit.identify as identify_module
 from multislit.capture import Capture
 from multislit.errors import IdentificationError
-from multislit.identify import identify
+from multislit.identify import (
+    IdentifyParams,
+    _sample_points,
+    _score_candidates,
+    _segment_votes,
+    identify,
+    split_at_brightness_steps,
+    template_size,
+)
+from multislit.order import _nanmedian_rows
+from multislit.reference import (
+    curve_u,
+    intersect_line_curves,
+    normalise_patches,
+    sample_patches,
+)
 from multislit.sim.evaluate import identification_metrics
+from multislit.slits import extract_slits
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +81,177 @@ def test_image_without_slits_gives_empty_result(scenes_reference):
 def test_wrong_image_size_is_an_error(scenes_reference):
     with pytest.raises(IdentificationError, match="prepared for 640x512"):
         identify(np.zeros((100, 100), np.uint8), scenes_reference)
+
+
+# --------------------------------------------------------------------------- fast scoring
+def _straightforward_scores(ref, scan_dots, pu, pv, p, allowed=None):
+    """The candidate scores computed the plain way: every reference patch sampled, normalised
+    and dotted with the template (what the fast scoring must reproduce)."""
+    R, N = ref.curves.shape[:2]
+    w, h = ref.image_size
+    hw, hh = template_size(ref, p)
+    uv = np.c_[pu, pv]
+    M = len(uv)
+    tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))
+    lines = ref.epipolar_lines(uv)
+    direction = np.c_[lines[:, 1], -lines[:, 0]]
+    uu_all = np.full((R, M, N), np.nan)
+    vv_all = np.full((R, M, N), np.nan)
+    for r in range(R):
+        vv = intersect_line_curves(
+            lines[:, None, :], ref.curves[r][None], np.broadcast_to(uv[:, 1:2], (M, N))
+        )
+        uu = curve_u(ref.curves[r][None], vv)
+        ok = np.isfinite(vv)
+        ok &= (vv >= ref.vrange[r, :, 0] - hh) & (vv <= ref.vrange[r, :, 1] + hh)
+        ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
+        uu_all[r], vv_all[r] = np.where(ok, uu, np.nan), np.where(ok, vv, np.nan)
+    valid = np.isfinite(vv_all).any(axis=0)
+    if p.references == "nearest":
+        disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
+        r_best = np.argmin(np.where(np.isfinite(disp), disp, np.inf), axis=0)
+        use = [(r, valid & (r_best == r)) for r in range(R)]
+    else:
+        use = [(r, np.isfinite(vv_all[r])) for r in range(R)]
+    best = np.full((M, N), -np.inf)
+    for r, mask in use:
+        ii, kk = np.nonzero(mask if allowed is None else mask & allowed)
+        cand = np.c_[uu_all[r, ii, kk], vv_all[r, ii, kk]]
+        for o in range(-p.search_px, p.search_px + 1):
+            pat = normalise_patches(sample_patches(ref.dots[r], cand + o * direction[ii], hw, hh))
+            best[ii, kk] = np.maximum(best[ii, kk], np.einsum("ij,ij->i", pat, tmpl[ii]))
+    out = np.where(valid & np.isfinite(best), best, np.nan)
+    out[~np.any(tmpl != 0, axis=1)] = np.nan
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene_samples(scenes_capture, scenes_reference):
+    """The 'spheres' scan, its extraction and the sample points identification scores."""
+    cap = Capture.open(scenes_capture)
+    img = cap.image(next(p for p in cap.scans if p.stem == "spheres"))
+    ex = extract_slits(
+        img,
+        stripe_width_px=scenes_reference.stripe_width_px,
+        dot_size_px=scenes_reference.dot_size_px,
+    )
+    seg = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
+    si = _sample_points(seg, ex.v, max(2.0, 0.3 * scenes_reference.spacing_px))
+    return img, ex, si
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        IdentifyParams(),  # tall templates
+        IdentifyParams(template_half_width=1.5),  # wide templates
+        IdentifyParams(references="all"),
+        IdentifyParams(search_px=2),  # some shifted patches leave the image
+    ],
+)
+def test_fast_scores_equal_sampled_patches(scenes_reference, scene_samples, params):
+    _, ex, si = scene_samples
+    si = si[::3]
+    dots = ex.dots.astype(np.float32)
+    rng = np.random.default_rng(2)
+    N = scenes_reference.num_slits
+    allowed = rng.random((len(si), N)) < 0.7
+    few = np.argsort(rng.random((len(si), N)), axis=1) < 3  # as in coarse to fine
+    for lim in (None, allowed, few):
+        fast = _score_candidates(scenes_reference, dots, ex.u[si], ex.v[si], params, lim)
+        slow = _straightforward_scores(scenes_reference, dots, ex.u[si], ex.v[si], params, lim)
+        assert np.array_equal(np.isnan(fast), np.isnan(slow))
+        assert np.isfinite(fast).mean() > 0.5 * (1.0 if lim is None else lim.mean())
+        assert np.nanmax(np.abs(fast - slow)) < 1e-4
+
+
+def test_fast_scoring_gives_the_same_slits(monkeypatch, scenes_reference, scene_samples):
+    img, ex, _ = scene_samples
+    fast = identify(img, scenes_reference, extraction=ex)
+    monkeypatch.setattr(identify_module, "_score_candidates", _straightforward_scores)
+    slow = identify(img, scenes_reference, extraction=ex)
+    assert fast.num_identified > 50
+    assert np.array_equal(fast.slit, slow.slit)
+    assert np.allclose(fast.confidence, slow.confidence, atol=1e-3)
+
+
+def test_segment_votes_match_a_plain_loop():
+    rng = np.random.default_rng(4)
+    seg_of_sample = rng.integers(0, 30, 600)
+    scores = rng.uniform(-0.5, 1.0, (600, 7))
+    scores[rng.random(scores.shape) < 0.2] = np.nan
+    scores[seg_of_sample == 3] = np.nan  # a segment without any candidate
+    votes = _segment_votes(seg_of_sample, scores, IdentifyParams())
+    assert set(votes) == set(np.unique(seg_of_sample).tolist())
+    for sid, (k, conf, m1, n) in votes.items():
+        S = scores[seg_of_sample == sid]
+        S = S[np.isfinite(S).any(axis=1)]
+        if len(S) == 0:
+            assert (k, conf, n) == (-1, 0.0, 0)
+            continue
+        Sz = np.where(np.isfinite(S), S, -0.2)
+        mean = Sz.mean(axis=0)
+        order = np.argsort(-mean, kind="stable")
+        d = Sz[:, order[0]] - Sz[:, order[1]]
+        se = d.std(ddof=1) / np.sqrt(len(S)) if len(S) > 1 else 0.3
+        want = np.clip(max(0.0, mean[order[0]] - mean[order[1]] - se) / 0.3, 0, 1)
+        assert (k, n) == (order[0], len(S))
+        assert m1 == pytest.approx(mean[order[0]]) and conf == pytest.approx(want)
+
+
+def _split_at_brightness_steps_loop(seg, v, peak, ratio=1.6, window=6):
+    """Segment by segment, the plain way (what the vectorised split must reproduce)."""
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    seg = seg.copy()
+    next_id = int(seg.max()) + 1
+    for sid in np.unique(seg[seg >= 0]):
+        pts = np.flatnonzero(seg == sid)
+        if pts.size < 2 * window + 2:
+            continue
+        pts = pts[np.argsort(v[pts])]
+        med = np.median(sliding_window_view(np.log(np.maximum(peak[pts], 1e-3)), window), axis=1)
+        step = np.abs(med[window:] - med[: len(med) - window])
+        cut_at = []
+        while step.size and step.max() > np.log(ratio):
+            j = int(np.argmax(step))
+            cut_at.append(j + window)
+            step[max(0, j - window) : min(len(step), j + window + 1)] = 0
+        for c in sorted(cut_at):
+            seg[pts[c:]] = np.where(seg[pts[c:]] == seg[pts[c]], next_id, seg[pts[c:]])
+            next_id += 1
+    return seg
+
+
+def test_brightness_steps_split_where_a_plain_loop_would():
+    rng = np.random.default_rng(6)
+    seg, v, peak = [], [], []
+    layout = [(40, [20]), (30, []), (50, [10, 30]), (12, [6]), (60, [45]), (13, [7]), (9, [])]
+    for sid, (length, steps) in enumerate(layout):
+        pk = rng.uniform(90, 110, length)
+        for at in steps:
+            pk[at:] *= 3.0
+        seg.append(np.full(length, sid))
+        v.append(np.arange(length, dtype=float) + 100 * sid)
+        peak.append(pk)
+    seg.append(np.full(5, -1))  # unlinked points
+    v.append(np.arange(5.0) + 1000)
+    peak.append(np.full(5, 100.0))
+    perm = rng.permutation(sum(len(s) for s in seg))
+    seg, v, peak = (np.concatenate(a)[perm] for a in (seg, v, peak))
+    out = split_at_brightness_steps(seg.astype(np.int64), v, peak)
+    assert np.array_equal(out, _split_at_brightness_steps_loop(seg.astype(np.int64), v, peak))
+    # the steps far enough from the ends cut their segments; short or even segments stay whole
+    assert [len(np.unique(out[seg == s])) for s in range(len(layout))] == [2, 1, 3, 1, 2, 1, 1]
+    assert np.all(out[seg == -1] == -1)
+
+
+def test_order_median_equals_numpy_nanmedian():
+    rng = np.random.default_rng(8)
+    for w in (1, 2, 3, 4):
+        a = rng.random((2000, w))
+        a[rng.random(a.shape) < 0.4] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.nanmedian(a, axis=1)
+        assert np.array_equal(_nanmedian_rows(a), want, equal_nan=True)

@@ -1,12 +1,23 @@
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 from multislit.capture import Capture
 from multislit.errors import ReferenceImageError
 from multislit.geometry import PinholeCamera
-from multislit.reference import ReferenceSet, curve_u, prepare_reference
+from multislit.reference import (
+    WINDOW_SUMS,
+    ReferenceSet,
+    _remap_patches,
+    bilinear_patch_moments,
+    curve_u,
+    intersect_line_curves,
+    prepare_reference,
+    sample_patches,
+    window_sums,
+)
 
 
 def test_reference_curves_follow_the_true_slits(scenes_capture, scenes_reference):
@@ -73,3 +84,73 @@ def test_wrong_number_of_slits_is_an_error(scenes_capture):
     cap = Capture.open(scenes_capture)
     with pytest.raises(ReferenceImageError, match="expected 26"):
         prepare_reference([cap.image(p) for p in cap.references], 26)
+
+
+# --------------------------------------------------------------------------- window sums
+def _sparse_dots(rng, shape):
+    """A dot-like image: mostly zeros, a few bright blobs (like the separated dot images)."""
+    img = np.where(rng.random(shape) < 0.05, rng.uniform(20, 230, shape), 0.0)
+    return cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
+
+
+@pytest.mark.parametrize(("half_w", "half_h"), [(4, 9), (7, 3)])
+def test_bilinear_patch_moments_match_sampled_patches(rng, half_w, half_h):
+    img = _sparse_dots(rng, (70, 90))
+    sums = window_sums(img, half_w, half_h)
+    assert sums.shape == (70 - 2 * half_h, 90 - 2 * half_w, len(WINDOW_SUMS))
+    c = np.c_[rng.uniform(half_w, 89 - half_w, 400), rng.uniform(half_h, 69 - half_h, 400)]
+    c[:4] = [[half_w, half_h], [89 - half_w, 69 - half_h], [half_w, 30.0], [40.5, 69 - half_h]]
+    c[4:40, 1] = np.round(c[4:40, 1])  # whole rows, as the stripe centres are
+    patches = sample_patches(img, c, half_w, half_h).reshape(len(c), -1).astype(np.float64)
+    s1, s2 = bilinear_patch_moments(sums, c[:, 0] - half_w, c[:, 1] - half_h)
+    assert np.allclose(s1, patches.sum(axis=1), rtol=1e-5, atol=1e-3)
+    assert np.allclose(s2, (patches**2).sum(axis=1), rtol=1e-5, atol=1e-3)
+    # several images, x-major layout: the same numbers
+    stack = np.stack([np.zeros_like(sums), sums]).transpose(0, 2, 1, 3).copy()
+    t1, t2 = bilinear_patch_moments(
+        stack, c[:, 0] - half_w, c[:, 1] - half_h, np.ones(len(c), np.intp), x_major=True
+    )
+    assert np.allclose(t1, s1) and np.allclose(t2, s2)
+
+
+def test_reference_keeps_derived_arrays(scenes_reference, tmp_path):
+    ref = scenes_reference
+    w, h = ref.image_size
+    sums = ref.window_sums(5, 8)
+    assert sums.shape == (ref.dots.shape[0], w - 10, h - 16, len(WINDOW_SUMS))  # x-major
+    assert ref.window_sums(5, 8) is sums and not sums.flags.writeable
+    assert np.array_equal(sums[1].transpose(1, 0, 2), window_sums(ref.dots[1], 5, 8))
+    dt = ref.dots_transposed()
+    assert dt.flags.c_contiguous and np.array_equal(dt[2], ref.dots[2].T)
+    # the cache is not part of the saved file; a loaded set builds its own
+    p = tmp_path / "ref.npz"
+    ref.save(p)
+    back = ReferenceSet.load(p)
+    assert np.allclose(back.window_sums(5, 8), sums, rtol=1e-2, atol=1.0)  # float16 dots
+
+
+def test_intersections_stop_when_converged(scenes_reference):
+    ref = scenes_reference
+    rng = np.random.default_rng(5)
+    uv = np.c_[rng.uniform(0, 640, 50), rng.uniform(0, 512, 50)]
+    lines = ref.epipolar_lines(uv)[:, None, :]
+    coeffs = ref.curves[0][None, :, :]
+    v0 = np.broadcast_to(uv[:, 1:2], (50, ref.num_slits))
+    v = intersect_line_curves(lines, coeffs, v0)
+    full = intersect_line_curves(lines, coeffs, v0, iterations=20, tol=0.0)
+    assert np.allclose(v, full, atol=1e-6)
+    # on the curve and on the line
+    u = curve_u(coeffs, v)
+    assert np.abs(lines[..., 0] * u + lines[..., 1] * v + lines[..., 2]).max() < 1e-6
+
+
+@pytest.mark.parametrize(("half_w", "half_h"), [(3, 8), (6, 2)])
+def test_sample_patches_blend_like_remap(rng, half_w, half_h):
+    img = _sparse_dots(rng, (60, 80))
+    c = np.c_[rng.uniform(-4, 84, 300), rng.uniform(-4, 64, 300)]  # some leave the image
+    for centres in (c, np.c_[c[:, 0], np.round(c[:, 1])]):  # sub-pixel and whole rows
+        got = sample_patches(img, centres, half_w, half_h)
+        want = _remap_patches(img, centres, half_w, half_h)
+        assert got.shape == (300, 2 * half_h + 1, 2 * half_w + 1)
+        assert np.allclose(got, want, atol=1e-3)
+    assert not np.any(sample_patches(img, np.array([[-50.0, -50.0]]), half_w, half_h))

@@ -49,7 +49,6 @@ from .geometry import (
     _distort,
     as_points,
     camera_from_dict,
-    fit_plane,
     rotation_from_rvec,
     rvec_from_rotation,
 )
@@ -846,6 +845,8 @@ class SlitPlanes:
     counts : (K,) int, number of points used per slit
     axis_point, axis_direction : (3,) float64 mm / unit, the common line (None if not fitted)
     excluded : tuple of (slit, reason) for slits left out
+    from_axis : tuple of int, slits seen along one line only, whose plane is the plane through
+        the common axis and their points (see :func:`fit_slit_planes`)
     """
 
     planes: F64
@@ -854,6 +855,7 @@ class SlitPlanes:
     axis_point: F64 | None = None
     axis_direction: F64 | None = None
     excluded: tuple[tuple[int, str], ...] = field(default=())
+    from_axis: tuple[int, ...] = field(default=())
 
     @property
     def num_slits(self) -> int:
@@ -872,6 +874,7 @@ class SlitPlanes:
             "axis_point": None if self.axis_point is None else self.axis_point.tolist(),
             "axis_direction": None if self.axis_direction is None else self.axis_direction.tolist(),
             "excluded": [[int(k), r] for k, r in self.excluded],
+            "from_axis": [int(j) for j in self.from_axis],
         }
 
     @classmethod
@@ -888,6 +891,7 @@ class SlitPlanes:
                 axis_point=None if ap is None else _array(ap, "axis_point", (3,)),
                 axis_direction=None if ad is None else _array(ad, "axis_direction", (3,)),
                 excluded=tuple((int(a), str(b)) for a, b in d.get("excluded", [])),
+                from_axis=tuple(int(j) for j in d.get("from_axis", [])),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"malformed slit planes: {exc!r}") from None
@@ -923,11 +927,19 @@ def common_line(planes: ArrayLike) -> tuple[F64, F64]:
     return a, u
 
 
+def _line_width(pts: F64) -> float:
+    """RMS distance (mm) of points (N, 3) from their total-least-squares line."""
+    sv = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)
+    return float(np.sqrt(np.sum(sv[1:] ** 2) / len(pts)))
+
+
 def fit_slit_planes(
     points: ArrayLike,
     slits: ArrayLike,
     num_slits: int,
     common_axis: bool = True,
+    min_width_mm: float = 0.0,
+    weights: ArrayLike | None = None,
 ) -> SlitPlanes:
     """Fit one plane per slit, optionally all through one common line.
 
@@ -940,12 +952,28 @@ def fit_slit_planes(
         Constrain all planes to contain one line (the grating's axis through the projector's
         source): parameters are the axis (point + direction) and one angle per slit, fitted by
         non-linear least squares from independent total-least-squares planes.
+    min_width_mm : float, mm
+        A slit whose points spread less than this (RMS distance from their best line) across
+        their line counts as seen along one line (e.g. on one flat face of the target), like a
+        slit with exactly collinear points. One line does not determine a plane by itself.
+    weights : (N,) float64 >= 0, optional
+        Weight of each point in the least-squares fits (e.g. 1 / variance, mm^-2); default
+        all 1. The reported ``rms_mm`` stays the plain (unweighted) RMS.
 
     Returns
     -------
     SlitPlanes
-        Slits with fewer than 3 points or collinear points get NaN and are listed in
-        ``excluded`` with the reason.
+        Slits with fewer than 3 points get NaN and are listed in ``excluded`` with the reason.
+        Slits seen along one line are left out of the axis fit. With ``common_axis`` they get
+        the plane through the fitted axis and their points (the axis and a line off it span
+        one plane, also when the line is parallel to the axis) and are listed in
+        ``from_axis``; their ``rms_mm`` is the RMS distance of their points to that plane.
+        They stay excluded (NaN, with the reason) when the axis is fitted from fewer than
+        :data:`MIN_AXIS_SLITS` slits, when their points are too close to the axis (RMS
+        distance below :data:`MIN_AXIS_LEVER` times the other slits' median) for the angle
+        to be determined, or when the plane's angle about the axis is more than
+        :data:`MAX_AXIS_ANGLE_DEVIATION` slit spacings from where the other slits' angles put
+        that slit number (mislabelled points). Without ``common_axis`` they are excluded.
 
     Raises
     ------
@@ -957,10 +985,21 @@ def fit_slit_planes(
     if len(s) != len(X):
         raise CalibrationError(f"points has {len(X)} rows but slits has {len(s)} values")
     _finite(X, "points")
+    if not (math.isfinite(min_width_mm) and min_width_mm >= 0):
+        raise CalibrationError(f"min_width_mm must be a finite value >= 0 mm, got {min_width_mm}")
+    if weights is None:
+        wt = np.ones(len(X))
+    else:
+        wt = np.asarray(weights, dtype=float).reshape(-1)
+        if len(wt) != len(X) or not np.all(np.isfinite(wt)) or np.any(wt < 0):
+            raise CalibrationError(
+                f"weights must be {len(X)} finite values >= 0 (one per point), got {len(wt)} values"
+            )
     k = int(num_slits)
     counts = np.bincount(s, minlength=k)
     planes = np.full((k, 4), np.nan)
     excluded: list[tuple[int, str]] = []
+    line_why: dict[int, str] = {}  # slits seen along one line -> why they have no own plane
     order = np.argsort(s, kind="stable")
     starts = np.searchsorted(s[order], np.arange(k + 1))
     for j in range(k):  # one TLS fit per slit (vectorised over its points)
@@ -971,35 +1010,156 @@ def fit_slit_planes(
             continue
         pts = X[order[starts[j] : starts[j + 1]]]
         try:
-            planes[j], _ = fit_plane(pts)
+            planes[j] = _weighted_plane(pts, wt[order[starts[j] : starts[j + 1]]])
         except MultislitError:
-            excluded.append((j, "its points are collinear; no unique plane"))
+            line_why[j] = "its points are collinear"
+            continue
+        if min_width_mm > 0:
+            width = _line_width(pts)
+            if width < min_width_mm:
+                planes[j] = np.nan
+                line_why[j] = (
+                    f"its points lie along one line (spread {width:.2g} mm across it, "
+                    f"< min_width_mm {min_width_mm:g})"
+                )
     ok = np.all(np.isfinite(planes), axis=1)
     if not np.any(ok):
         raise CalibrationError(
-            "no slit has >= 3 non-collinear points; read points along each slit on two faces"
+            "no slit has >= 3 points off one line; read points along each slit on two faces"
         )
     # consistent normal orientation: agree with the middle valid slit
     ref = planes[np.flatnonzero(ok)[np.count_nonzero(ok) // 2], :3]
     flip = (planes[:, :3] @ ref) < 0
     planes[flip] *= -1
     axis_point = axis_dir = None
+    from_axis: list[int] = []
     if common_axis:
         if np.count_nonzero(ok) < 2:
             raise CalibrationError(
                 "common_axis=True needs >= 2 slits with planes to define the axis; "
                 "read more slits or pass common_axis=False"
             )
-        planes, axis_point, axis_dir = _fit_common_axis(X, s, planes, ok)
+        planes, axis_point, axis_dir = _fit_common_axis(X, s, planes, ok, wt)
+        for j, why in _planes_from_axis(
+            X, wt, order, starts, planes, ok, sorted(line_why), axis_point, axis_dir, ref
+        ).items():
+            if why:
+                excluded.append((j, f"{line_why[j]}: no plane of its own, and {why}"))
+            else:
+                from_axis.append(j)
+    else:
+        excluded += [
+            (j, f"{why}: no unique plane (common_axis=False)") for j, why in line_why.items()
+        ]
+    excluded.sort()
+    ok = np.all(np.isfinite(planes), axis=1)
     valid_pt = ok[s]
     d = np.einsum("ij,ij->i", X[valid_pt], planes[s[valid_pt], :3]) + planes[s[valid_pt], 3]
     ssq = np.bincount(s[valid_pt], weights=d * d, minlength=k)
     with np.errstate(invalid="ignore", divide="ignore"):
         rms_mm = np.where(ok, np.sqrt(ssq / np.maximum(counts, 1)), np.nan)
-    return SlitPlanes(planes, rms_mm, counts, axis_point, axis_dir, tuple(excluded))
+    return SlitPlanes(
+        planes, rms_mm, counts, axis_point, axis_dir, tuple(excluded), tuple(from_axis)
+    )
 
 
-def _fit_common_axis(X: F64, s: NDArray[np.intp], planes: F64, ok: NDArray[np.bool_]):
+#: Least number of slits with planes of their own for the common axis to give planes to slits
+#: seen along one line.
+MIN_AXIS_SLITS = 3
+#: A slit seen along one line gets the plane through the axis only if its points are at least
+#: this fraction of the other slits' median RMS distance from the axis.
+MIN_AXIS_LEVER = 0.2
+#: ... and only if that plane's angle about the axis is within this many local slit spacings of
+#: where a smooth curve through the other slits' angles puts its slit number.
+MAX_AXIS_ANGLE_DEVIATION = 0.25
+
+
+def _planes_from_axis(
+    X: F64,
+    wt: F64,
+    order: NDArray[np.intp],
+    starts: NDArray[np.intp],
+    planes: F64,
+    ok: NDArray[np.bool_],
+    lines: Sequence[int],
+    axis_point: F64,
+    axis_dir: F64,
+    ref: F64,
+) -> dict[int, str]:
+    """Give slits seen along one line the plane through the common axis and their points.
+
+    Fills ``planes[j]`` (in place) for each slit ``j`` of ``lines`` that is determined; returns
+    slit -> "" for those, or slit -> why not.
+    """
+    out: dict[int, str] = {}
+    if not lines:
+        return out
+    idx = np.flatnonzero(ok)
+    if len(idx) < MIN_AXIS_SLITS:
+        why = (
+            f"the common axis is fitted from only {len(idx)} slit(s) (>= {MIN_AXIS_SLITS} "
+            "with planes of their own give it the plane through the axis)"
+        )
+        return dict.fromkeys(lines, why)
+    # angle of each plane about the axis, measured from the reference normal
+    b1 = ref - (ref @ axis_dir) * axis_dir
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(axis_dir, b1)
+
+    def cross_section(j: int) -> F64:
+        q = X[order[starts[j] : starts[j + 1]]] - axis_point
+        return np.stack([q @ b1, q @ b2], axis=1)  # (n, 2) mm, perpendicular to the axis
+
+    phi = np.arctan2(planes[idx, :3] @ b2, planes[idx, :3] @ b1)
+    lever = np.array([math.sqrt(np.mean(np.sum(cross_section(j) ** 2, axis=1))) for j in idx])
+    ref_lever = float(np.median(lever))
+    deg = min(3, len(idx) - 1)
+    t = (idx - idx.mean()) / max(float(np.ptp(idx)), 1.0)
+    coef = np.polyfit(t, phi, deg)
+    for j in lines:
+        c = cross_section(j)
+        wj = wt[order[starts[j] : starts[j + 1]]]
+        w, V = np.linalg.eigh((c * wj[:, None]).T @ c / max(float(wj.sum()), 1e-300))
+        lev = math.sqrt(max(float(w[1]), 0.0))
+        if lev < MIN_AXIS_LEVER * ref_lever:
+            out[j] = (
+                f"its points pass within {lev:.3g} mm (RMS) of the common axis (the other slits' "
+                f"points: {ref_lever:.3g} mm): the plane through the axis is undetermined"
+            )
+            continue
+        n2 = V[:, 0]
+        n = n2[0] * b1 + n2[1] * b2
+        if n @ ref < 0:
+            n = -n
+        phi_j = math.atan2(n @ b2, n @ b1)
+        tj = (j - idx.mean()) / max(float(np.ptp(idx)), 1.0)
+        pred = float(np.polyval(coef, tj))
+        spacing = abs(float(np.polyval(np.polyder(coef), tj))) / max(float(np.ptp(idx)), 1.0)
+        dev = abs(phi_j - pred) / max(spacing, 1e-12)
+        if not dev <= MAX_AXIS_ANGLE_DEVIATION:
+            out[j] = (
+                f"the plane through the common axis and its points is {dev:.2g} slit spacings "
+                f"from where the other slits' planes put slit {j} (mislabelled points?)"
+            )
+            continue
+        planes[j, :3] = n
+        planes[j, 3] = -(n @ axis_point)
+        out[j] = ""
+    return out
+
+
+def _weighted_plane(pts: F64, w: F64) -> F64:
+    """Weighted total-least-squares plane (4,) of points (N, 3); MultislitError if collinear."""
+    if not np.any(w > 0):
+        raise MultislitError("all weights are 0")
+    c = (w[:, None] * pts).sum(axis=0) / w.sum()
+    _, sv, vt = np.linalg.svd(np.sqrt(w)[:, None] * (pts - c), full_matrices=False)
+    if sv[1] < 1e-9 * max(sv[0], 1e-300):
+        raise MultislitError("the points are collinear, no unique plane")
+    return np.append(vt[2], -vt[2] @ c)
+
+
+def _fit_common_axis(X: F64, s: NDArray[np.intp], planes: F64, ok: NDArray[np.bool_], wt: F64):
     idx = np.flatnonzero(ok)
     a0, u0 = common_line(planes[idx])
     e1, e2 = _orthonormal_basis(u0)
@@ -1008,7 +1168,7 @@ def _fit_common_axis(X: F64, s: NDArray[np.intp], planes: F64, ok: NDArray[np.bo
     pos = np.full(len(planes), -1)
     pos[idx] = np.arange(len(idx))
     use = ok[s]
-    Xu, col = X[use], pos[s[use]]
+    Xu, col, sw = X[use], pos[s[use]], np.sqrt(wt[use])
     scale = max(float(np.abs(Xu - a0).max()), 1.0)
 
     def unpack(q: F64):
@@ -1020,7 +1180,7 @@ def _fit_common_axis(X: F64, s: NDArray[np.intp], planes: F64, ok: NDArray[np.bo
 
     def fun(q: F64) -> F64:
         a, _, n = unpack(q)
-        return np.einsum("ij,ij->i", Xu - a, n[col])
+        return sw * np.einsum("ij,ij->i", Xu - a, n[col])
 
     m = len(idx)
     J = lil_matrix((len(Xu), 4 + m), dtype=int)

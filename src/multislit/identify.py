@@ -20,6 +20,7 @@ from .errors import IdentificationError
 from .order import OrderParams, _apply, _run_offsets, _runs
 from .reference import (
     ReferenceSet,
+    bilinear_patch_moments,
     curve_u,
     intersect_line_curves,
     normalise_patches,
@@ -41,8 +42,10 @@ class IdentifyParams:
     coarse_every, keep_hypotheses : coarse to fine: every slit is scored on every
         ``coarse_every``-th sample of a segment, then only the segment's ``keep_hypotheses`` best
         slits on all its samples (1, the default = score every slit everywhere). Measured with
-        benchmarks/bench_identify.py: coarse_every=3, keep 3 halves the time at 25 slits (and
-        ~2.5x at 49) but costs coverage and correctness on curved and occluded scenes
+        benchmarks/bench_identify.py before the scoring was vectorised: coarse_every=3, keep 3
+        halved the time at 25 slits (~2.5x at 49) but cost coverage and correctness on curved
+        and occluded scenes; with the present scoring it saves little (none at 25 slits, ~1.2x
+        at 49, half-size scenes) and gives the same slits as before
     order_fill : give segments the dots left unidentified the slit number their place in the
         row implies, when the dot-identified stripes around them agree (confidence <= 0.6)
     trim_rows : rows at each end of a segment left unidentified (junctions of two stripes)
@@ -54,6 +57,8 @@ class IdentifyParams:
     min_score : a segment's best mean NCC must reach this
     min_confidence : segments below this confidence are dropped
     min_samples : segments with fewer sample points are dropped (too short to vote)
+    chunk : most sample points scored in one block (with a ~4 MB bound on the reference
+        windows gathered at once; bounds memory, not results)
     """
 
     template_half_width: float = 0.40
@@ -129,6 +134,129 @@ def template_size(ref: ReferenceSet, p: IdentifyParams) -> tuple[int, int]:
     return hw, max(4, hh)
 
 
+def _candidates(ref: ReferenceSet, uv: F64, lines: F64, hw: int, hh: int) -> tuple[F64, F64]:
+    """Where each sample's epipolar line meets each slit's curve in each reference image.
+
+    Parameters
+    ----------
+    uv : (M, 2) float64, px, sample points
+    lines : (M, 3) float64, their epipolar lines (unit normal)
+    hw, hh : template half sizes, px
+
+    Returns
+    -------
+    uu, vv : (R, M, N) float64, px, the intersections; NaN where there is none, where it lies
+        beyond the rows the curve was seen in (+- ``hh``) or where the template would leave
+        the image
+    """
+    w, h = ref.image_size
+    R, N = ref.curves.shape[:2]
+    M = len(uv)
+    vv = np.empty((R, M, N))
+    uu = np.empty((R, M, N))
+    step = max(1, 2**16 // (R * N))  # samples per block: the Newton steps' arrays stay in cache
+    for a in range(0, M, step):
+        sl = slice(a, a + step)
+        vv[:, sl] = intersect_line_curves(
+            lines[None, sl, None, :],
+            ref.curves[:, None, :, :],
+            np.broadcast_to(uv[None, sl, 1:2], (R, len(uv[sl]), N)),
+        )
+        uu[:, sl] = curve_u(ref.curves[:, None, :, :], vv[:, sl])
+    lo = ref.vrange[:, None, :, 0]
+    hi = ref.vrange[:, None, :, 1]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(vv) & (vv >= lo - hh) & (vv <= hi + hh)
+        ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
+    return np.where(ok, uu, np.nan), np.where(ok, vv, np.nan)
+
+
+#: Bytes of reference windows gathered at once when scoring (bounds memory, stays in cache).
+_GATHER_BYTES = 4 << 20
+
+
+def _ncc_at(
+    ref: ReferenceSet,
+    sums: NDArray[np.float32],
+    tmpl: NDArray[np.float32],
+    r: NDArray[np.intp],
+    uu: F64,
+    vv: F64,
+    hw: int,
+    hh: int,
+    max_block: int = 400,
+) -> F64:
+    """NCC of each sample's template with bilinear reference patches at given centres.
+
+    Equal to ``normalise_patches(sample_patches(ref.dots[r], (uu, vv), hw, hh))`` dotted with
+    the template, without sampling the patches: the bilinear patch blends the four integer
+    windows at the corners of its pixel cell, so its dot product with the template is the same
+    blend of the template's dot products with those windows (one matrix product over one
+    gathered window a pixel larger), and its mean and norm follow from the reference's window
+    sums (:func:`~multislit.reference.bilinear_patch_moments`).
+
+    Parameters
+    ----------
+    sums : (R, W', H', 6) float32, ``ref.window_sums(hw, hh)`` (x-major)
+    tmpl : (m, K) float32, normalised templates (:func:`~multislit.reference.normalise_patches`)
+    r : (m, C) intp, reference image of each candidate
+    uu, vv : (m, C) float64, px, patch centres, with the patch inside the image
+    hw, hh : patch half sizes, px
+    max_block : most samples whose windows are gathered at once
+
+    Returns
+    -------
+    ncc : (m, C) float64, 0 for a flat (all equal) reference patch
+    """
+    m, C = r.shape
+    ph, pw = 2 * hh + 1, 2 * hw + 1
+    K = ph * pw
+    if m == 0 or C == 0:
+        return np.zeros((m, C))
+    x, y = uu - hw, vv - hh
+    ws, hs = sums.shape[1:3]  # x-major
+    x0 = np.minimum(np.floor(x), ws - 2).astype(np.intp)
+    y0 = np.minimum(np.floor(y), hs - 2).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    # the template at the four corners of the cell, in a window one pixel larger; a tall patch
+    # is gathered from the transposed images (fewer, longer rows to copy)
+    tall = ph > pw
+    t2 = tmpl.reshape(m, ph, pw)
+    if tall:
+        t2 = t2.transpose(0, 2, 1)
+        src, idx = ref.dots_transposed(), (x0, y0)
+    else:
+        src, idx = ref.dots, (y0, x0)
+    n0, n1 = t2.shape[1:]
+    # corners in the order 00, 10, 01, 11 (x offset, y offset) -> offsets in the window layout
+    corners = [(ox, oy) if not tall else (oy, ox) for ox, oy in ((0, 0), (1, 0), (0, 1), (1, 1))]
+    win = np.lib.stride_tricks.sliding_window_view(src, (n0 + 1, n1 + 1), axis=(1, 2))
+    dots4 = np.empty((m, C, 4), np.float32)
+    step = max(1, min(max_block, _GATHER_BYTES // (C * (n0 + 1) * (n1 + 1) * 4)))
+    t4 = np.zeros((min(step, m), 4, n0 + 1, n1 + 1), np.float32)
+    for a in range(0, m, step):
+        sl = slice(a, a + step)
+        s_ = len(t2[sl])
+        for j, (d1, d0) in enumerate(corners):
+            t4[:s_, j, d0 : d0 + n0, d1 : d1 + n1] = t2[sl]  # (its other cells stay 0)
+        # slit by slit (consecutive samples' windows overlap in memory): (C, s, n0+1, n1+1)
+        g = win[r[sl].T, idx[0][sl].T, idx[1][sl].T]
+        np.matmul(
+            g.reshape(C, s_, -1).transpose(1, 0, 2),
+            t4[:s_].reshape(s_, 4, -1).transpose(0, 2, 1),
+            out=dots4[sl],
+        )
+    num = (1 - fy) * ((1 - fx) * dots4[..., 0] + fx * dots4[..., 1]) + fy * (
+        (1 - fx) * dots4[..., 2] + fx * dots4[..., 3]
+    )
+    # slit by slit: consecutive samples' patches lie close together in the x-major sums
+    s1, s2 = bilinear_patch_moments(sums, x.T.copy(), y.T.copy(), r.T.copy(), x_major=True)
+    s1, s2 = s1.T, s2.T
+    var = s2 - s1 * s1 / K
+    flat = var <= 1e-6 * np.maximum(s2, 1e-12)
+    return np.where(flat, 0.0, num / np.sqrt(np.where(flat, 1.0, var)))
+
+
 def _score_candidates(
     ref: ReferenceSet,
     scan_dots: NDArray,
@@ -146,53 +274,70 @@ def _score_candidates(
     hw, hh = template_size(ref, p)
     M = len(pu)
     scores = np.full((M, N), np.nan)
+    if M == 0:
+        return scores
+    sums = ref.window_sums(hw, hh)
     offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
-    for c0 in range(0, M, p.chunk):
-        c1 = min(M, c0 + p.chunk)
-        uv = np.c_[pu[c0:c1], pv[c0:c1]]
-        m = len(uv)
-        tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))  # (m, K)
-        lines = ref.epipolar_lines(uv)  # (m, 3), unit normal (a, b)
-        direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
-        vv_all = np.full((R, m, N), np.nan)
-        uu_all = np.full((R, m, N), np.nan)
-        for r in range(R):
-            vv = intersect_line_curves(
-                lines[:, None, :], ref.curves[r][None, :, :], np.broadcast_to(uv[:, 1:2], (m, N))
-            )
-            uu = curve_u(ref.curves[r][None, :, :], vv)
-            lo = ref.vrange[r, :, 0][None, :]
-            hi = ref.vrange[r, :, 1][None, :]
-            ok = np.isfinite(vv) & (vv >= lo - hh) & (vv <= hi + hh)
-            ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
-            vv_all[r] = np.where(ok, vv, np.nan)
-            uu_all[r] = np.where(ok, uu, np.nan)
-        valid_any = np.isfinite(vv_all).any(axis=0)
-        if p.references == "nearest":
-            # compare each hypothesis in the reference where its candidate lies nearest the
-            # scan point: the board depth closest to the surface's, the least deformed dots
-            disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
-            r_best = np.argmin(np.where(np.isfinite(disp), disp, np.inf), axis=0)
-            use = [(r, valid_any & (r_best == r)) for r in range(R)]
-        else:
-            use = [(r, np.isfinite(vv_all[r])) for r in range(R)]
-        best = np.full((m, N), -np.inf)
-        lim = None if allowed is None else allowed[c0:c1]
-        for r, mask in use:
-            ii, kk = np.nonzero(mask if lim is None else mask & lim)
-            if ii.size == 0:
-                continue
-            cand = np.stack([uu_all[r, ii, kk], vv_all[r, ii, kk]], axis=1)
-            for o in offs:
-                c = cand + o * direction[ii]
-                pat = normalise_patches(sample_patches(ref.dots[r], c, hw, hh))
-                sc = np.einsum("ij,ij->i", pat, tmpl[ii])
-                best[ii, kk] = np.maximum(best[ii, kk], sc)
-        blk = np.where(valid_any & np.isfinite(best), best, np.nan)
-        # a flat template (no dots around the point) says nothing
-        flat = ~np.any(tmpl != 0, axis=1)
-        blk[flat] = np.nan
-        scores[c0:c1] = blk
+    uv = np.c_[pu, pv]
+    lines = ref.epipolar_lines(uv)  # (M, 3), unit normal (a, b)
+    direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
+    uu_all, vv_all = _candidates(ref, uv, lines, hw, hh)  # (R, M, N)
+    valid_any = np.isfinite(vv_all).any(axis=0)
+    if allowed is not None:
+        valid_any &= allowed
+    if p.references == "nearest":
+        # compare each hypothesis in the reference where its candidate lies nearest the
+        # scan point: the board depth closest to the surface's, the least deformed dots
+        disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
+        r_sel = np.argmin(np.where(np.isfinite(disp), disp, np.inf), axis=0)[:, :, None]
+    else:
+        r_sel = np.broadcast_to(np.arange(R)[None, None, :], (M, N, R))
+    ii = np.arange(M)[:, None, None]
+    kk = np.arange(N)[None, :, None]
+    cu = uu_all[r_sel, ii, kk]  # (M, N, R') candidate centres
+    cv = vv_all[r_sel, ii, kk]
+    ok = np.isfinite(cv) & valid_any[:, :, None]
+    # search along the epipolar line: (M, N, R', O)
+    cu = cu[..., None] + offs * direction[:, None, None, 0:1]
+    cv = cv[..., None] + offs * direction[:, None, None, 1:2]
+    rr = np.broadcast_to(r_sel[..., None], cu.shape)
+    ok = np.broadcast_to(ok[..., None], cu.shape)
+    # a patch shifted off the image is zero-padded: sample it directly (rare)
+    with np.errstate(invalid="ignore"):
+        inside = (cu >= hw) & (cu <= w - 1 - hw) & (cv >= hh) & (cv <= h - 1 - hh)
+    direct = ok & ~inside
+    fast = ok & inside
+    shape = cu.shape
+    tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))  # (M, K)
+    rr_f = np.where(fast, rr, 0).reshape(M, -1)
+    cu_f = np.where(fast, cu, hw).reshape(M, -1)
+    cv_f = np.where(fast, cv, hh).reshape(M, -1)
+    sc = np.full(shape, -np.inf)
+    sc_flat = sc.reshape(M, -1)
+    fast_flat = fast.reshape(M, -1)
+    n_max = int(fast_flat.sum(axis=1).max())
+    if n_max == fast_flat.shape[1]:
+        sc_flat[:] = _ncc_at(ref, sums, tmpl, rr_f, cu_f, cv_f, hw, hh, p.chunk)
+    elif n_max > 0:
+        # few hypotheses per sample (coarse to fine, missing candidates): score only those,
+        # packed to the front of each sample's row
+        cols = np.argsort(~fast_flat, axis=1, kind="stable")[:, :n_max]
+        packed = [np.take_along_axis(a, cols, axis=1) for a in (rr_f, cu_f, cv_f)]
+        scored = _ncc_at(ref, sums, tmpl, *packed, hw, hh, p.chunk)
+        np.put_along_axis(sc_flat, cols, scored, axis=1)
+    sc_flat[~fast_flat] = -np.inf
+    if direct.any():
+        di = np.nonzero(direct)
+        for r in np.unique(rr[di]):
+            sel = tuple(q[rr[di] == r] for q in di)
+            pat = normalise_patches(sample_patches(ref.dots[r], np.c_[cu[sel], cv[sel]], hw, hh))
+            sc[sel] = np.einsum("ij,ij->i", pat, tmpl[sel[0]])
+    best = sc.reshape(M, N, -1).max(axis=2)
+    blk = np.where(valid_any & np.isfinite(best), best, np.nan)
+    # a flat template (no dots around the point) says nothing
+    flat = ~np.any(tmpl != 0, axis=1)
+    blk[flat] = np.nan
+    scores[:] = blk
     return scores
 
 
@@ -207,22 +352,30 @@ def split_at_brightness_steps(
     is placed where the median brightness of the ``window`` rows before and after differ most,
     if they differ by more than ``ratio``.
     """
+    from numpy.lib.stride_tricks import sliding_window_view
+
     seg = seg.copy()
     next_id = int(seg.max()) + 1 if seg.size else 0
-    ids = np.unique(seg[seg >= 0])
-    for sid in ids:
-        pts = np.flatnonzero(seg == sid)
-        if pts.size < 2 * window + 2:
-            continue
-        pts = pts[np.argsort(v[pts])]
-        logp = np.log(np.maximum(peak[pts], 1e-3))
-        # rolling medians before / after each gap between consecutive points
-        from numpy.lib.stride_tricks import sliding_window_view
-
-        med = np.median(sliding_window_view(logp, window), axis=1)  # med[i] = rows i..i+w-1
-        before = med[: len(med) - window]  # rows j-w..j-1 for split after index j-1
-        after = med[window:]
-        step = np.abs(after - before)
+    idx = np.flatnonzero(seg >= 0)
+    if idx.size < 2 * window + 2:
+        return seg
+    # all segments at once: points by (segment, v); rolling medians of log brightness
+    order = idx[np.lexsort((v[idx], seg[idx]))]
+    s_o = seg[order]
+    bounds = np.flatnonzero(np.r_[True, s_o[1:] != s_o[:-1], True])
+    start = np.repeat(bounds[:-1], np.diff(bounds))  # first point of each point's segment
+    end = np.repeat(bounds[1:], np.diff(bounds))
+    logp = np.log(np.maximum(peak[order], 1e-3))
+    med = np.median(sliding_window_view(logp, window), axis=1)  # med[i] = points i..i+w-1
+    g = np.arange(len(med) - window)  # before: g..g+w-1, after: g+w..g+2w-1
+    inside = (g + 2 * window <= end[g]) & (end[g] - start[g] >= 2 * window + 2)
+    step_all = np.where(inside, np.abs(med[g + window] - med[g]), 0.0)
+    candidates = np.unique(s_o[g[step_all > np.log(ratio)]])
+    for sid in candidates:
+        a = int(np.searchsorted(s_o, sid, side="left"))
+        b = int(np.searchsorted(s_o, sid, side="right"))
+        pts = order[a:b]
+        step = step_all[a : b - 2 * window + 1].copy()  # same as this segment's own medians
         cut_at = []
         while step.size and step.max() > np.log(ratio):
             j = int(np.argmax(step))
@@ -251,7 +404,12 @@ def _split_segments(seg: I64, v: F64, si: NDArray[np.intp], scores: F64, p: Iden
     strong = (top2[:, 1] >= p.min_score) & (top2[:, 1] - top2[:, 0] >= 0.1)
     next_id = int(seg.max()) + 1
     ss = seg[si]
-    for sid in np.unique(ss):
+    # only segments with >= 4 strong samples whose winner changes can split
+    st = np.flatnonzero(strong)
+    st = st[np.lexsort((v[si[st]], ss[st]))]
+    same = ss[st][1:] == ss[st][:-1]
+    changing = np.unique(ss[st][1:][same & (win[st][1:] != win[st][:-1])])
+    for sid in changing:
         rows = np.flatnonzero((ss == sid) & strong)
         if rows.size < 4:
             continue
@@ -290,35 +448,45 @@ def _segment_votes(
     out: dict[int, tuple[int, float, float, int]] = {}
     if len(scores) == 0:
         return out
-    order = np.argsort(seg_of_sample, kind="stable")
-    s_sorted = seg_of_sample[order]
-    bounds = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1], True])
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-        rows = order[a:b]
-        S = scores[rows]
-        good = np.isfinite(S).any(axis=1)
-        S = S[good]
-        n = len(S)
-        sid = int(s_sorted[a])
-        if n == 0:
-            out[sid] = (-1, 0.0, np.nan, 0)
-            continue
-        Sz = np.where(
-            np.isfinite(S), S, -0.2
-        )  # a hypothesis without a candidate counts as a bad match
-        mean = Sz.mean(axis=0)
-        k1 = int(np.argmax(mean))
-        m1 = float(mean[k1])
-        rest = np.delete(mean, k1)
-        k2 = int(np.argmax(rest)) if rest.size else -1
-        m2 = float(rest[k2]) if rest.size else -1.0
-        k2 = k2 + (k2 >= k1) if k2 >= 0 else -1
-        d = Sz[:, k1] - (Sz[:, k2] if k2 >= 0 else -1.0)
-        # margin, discounted by its uncertainty (few or disagreeing samples)
-        se = d.std(ddof=1) / np.sqrt(n) if n > 1 else 0.3
-        margin = max(0.0, m1 - m2 - se)
-        conf = float(np.clip(margin / 0.3, 0.0, 1.0))
-        out[sid] = (k1, conf, m1, n)
+    N = scores.shape[1]
+    good = np.isfinite(scores).any(axis=1)
+    sids = np.unique(seg_of_sample)
+    for sid in np.setdiff1d(sids, seg_of_sample[good]):
+        out[int(sid)] = (-1, 0.0, np.nan, 0)
+    rows = np.flatnonzero(good)
+    if rows.size == 0:
+        return out
+    rows = rows[np.argsort(seg_of_sample[rows], kind="stable")]
+    s_sorted = seg_of_sample[rows]
+    starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
+    n = np.diff(np.r_[starts, len(rows)])
+    S = scores[rows]
+    # a hypothesis without a candidate counts as a bad match
+    Sz = np.where(np.isfinite(S), S, -0.2)
+    mean = np.add.reduceat(Sz, starts, axis=0) / n[:, None]  # (G, N)
+    k1 = np.argmax(mean, axis=1)
+    g = np.arange(len(starts))
+    m1 = mean[g, k1]
+    if N > 1:
+        rest = mean.copy()
+        rest[g, k1] = -np.inf
+        k2 = np.argmax(rest, axis=1)
+        m2 = rest[g, k2]
+        grp = np.repeat(g, n)
+        d = Sz[np.arange(len(rows)), k1[grp]] - Sz[np.arange(len(rows)), k2[grp]]
+    else:
+        m2 = np.full(len(starts), -1.0)
+        grp = np.repeat(g, n)
+        d = Sz[:, 0] + 1.0
+    # margin, discounted by its uncertainty (few or disagreeing samples)
+    dm = np.add.reduceat(d, starts) / n
+    ss = np.add.reduceat((d - dm[grp]) ** 2, starts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se = np.where(n > 1, np.sqrt(ss / np.maximum(n - 1, 1)) / np.sqrt(n), 0.3)
+    margin = np.maximum(0.0, m1 - m2 - se)
+    conf = np.clip(margin / 0.3, 0.0, 1.0)
+    for j, sid in enumerate(s_sorted[starts]):
+        out[int(sid)] = (int(k1[j]), float(conf[j]), float(m1[j]), int(n[j]))
     return out
 
 
@@ -366,10 +534,9 @@ def _fill_by_order(
     offset = _run_offsets(run, rank, vote, np.where(slit >= 0, conf, 0.0), n_runs, op)
     # an offset must be confirmed by the dots of >= 2 different stripes (segments) of the run
     voted = (vote >= 0) & (run >= 0)
-    pairs = np.unique(np.stack([run[voted], seg[voted]], axis=1), axis=0)
-    n_seg_votes = (
-        np.bincount(pairs[:, 0], minlength=n_runs) if len(pairs) else np.zeros(n_runs, int)
-    )
+    span = int(seg.max()) + 2
+    pairs = np.unique(run[voted].astype(np.int64) * span + (seg[voted] + 1))
+    n_seg_votes = np.bincount(pairs // span, minlength=n_runs)
     offset = np.where(n_seg_votes >= 2, offset, np.iinfo(np.intp).min)
     lab = _apply(run, rank, offset, num_slits)
     # interpolate only: a point is labelled only between dot-identified stripes of its run
@@ -381,17 +548,30 @@ def _fill_by_order(
     inside = (run >= 0) & (rank > lo[np.maximum(run, 0)]) & (rank < hi[np.maximum(run, 0)])
     lab = np.where(inside, lab, -1)
     out: dict[int, tuple[int, float]] = {}
-    free = ok & (slit < 0) & usable
-    for sid in np.unique(seg[free]):
-        m = seg == sid
-        labs = lab[m]
-        labs = labs[labs >= 0]
-        if labs.size < 5 or labs.size < 0.5 * m.sum():
+    free = np.unique(seg[ok & (slit < 0) & usable])
+    if free.size == 0:
+        return out
+    # per segment: its points, its labelled points and its most frequent label (the smallest
+    # of equally frequent ones)
+    n_pts = np.bincount(seg[ok], minlength=span)
+    lm = ok & (lab >= 0)
+    L = num_slits + 1
+    keys, cnt = np.unique(seg[lm].astype(np.int64) * L + lab[lm], return_counts=True)
+    ks, kl = keys // L, keys % L
+    n_lab = np.bincount(ks, weights=cnt, minlength=span)
+    o = np.lexsort((kl, -cnt, ks))
+    first = o[np.r_[True, ks[o][1:] != ks[o][:-1]]] if len(o) else o
+    best_lab = np.full(span, -1, np.int64)
+    best_cnt = np.zeros(span)
+    best_lab[ks[first]] = kl[first]
+    best_cnt[ks[first]] = cnt[first]
+    for sid in free:
+        nl = n_lab[sid]
+        if nl < 5 or nl < 0.5 * n_pts[sid]:
             continue
-        vals, cnt = np.unique(labs, return_counts=True)
-        agree = cnt.max() / labs.size
+        agree = best_cnt[sid] / nl
         if agree >= 0.95:
-            out[int(sid)] = (int(vals[cnt.argmax()]), float(0.6 * agree))
+            out[int(sid)] = (int(best_lab[sid]), float(0.6 * agree))
     return out
 
 

@@ -10,7 +10,6 @@ identification (:mod:`multislit.identify`) and the calibration labelling
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +42,17 @@ class OrderParams:
     match_px: float | None = None
 
 
+def _nanmedian_rows(a: F64) -> F64:
+    """``np.nanmedian(a, axis=1)`` of a narrow (n, w) array, NaN for all-NaN rows, no warning."""
+    a = np.sort(a, axis=1)  # NaN sort last
+    n = np.sum(~np.isnan(a), axis=1)
+    rows = np.arange(len(a))
+    lo = a[rows, np.maximum(n - 1, 0) // 2]
+    hi = a[rows, np.maximum(n, 1) // 2 * (n > 0)]
+    with np.errstate(invalid="ignore"):
+        return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+
+
 def _runs(
     u: F64, v: F64, ok: NDArray[np.bool_], p: OrderParams
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -68,11 +78,9 @@ def _runs(
     win = np.lib.stride_tricks.sliding_window_view(pad, 2 * w + 1)
     rwin = np.lib.stride_tricks.sliding_window_view(rpad, 2 * w + 1)
     win = np.where(rwin == rowid[:, None], win, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows: NaN spacing
-        before = np.nanmedian(win[:, :w], axis=1)
-        after = np.nanmedian(win[:, w + 1 :], axis=1)
-        spacing = np.fmin(before, after)
+    before = _nanmedian_rows(win[:, :w])  # all-NaN windows: NaN spacing
+    after = _nanmedian_rows(win[:, w + 1 :])
+    spacing = np.fmin(before, after)
     small = same & (gap < p.min_gap_ratio * spacing)
     big = ~same | ~(gap <= p.max_gap_ratio * spacing)  # NaN spacing (lonely pair): cut
     bad = np.zeros(m, bool)
