@@ -60,7 +60,9 @@ def main() -> None:
     a = ap.parse_args()
     spec = RigSpec()
     if a.slits == 49:  # the identification benchmark's 49-slit rig: twice the pitch, thinner sheet
-        spec = replace(spec, slits=replace(spec.slits, num_slits=49, pitch_um=68.0, stripe_sigma_mrad=0.6))
+        spec = replace(
+            spec, slits=replace(spec.slits, num_slits=49, pitch_um=68.0, stripe_sigma_mrad=0.6)
+        )
     if a.scale != 1.0:
         spec = spec.scaled(a.scale)
     rig = SimulatedRig.build(spec)

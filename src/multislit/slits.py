@@ -39,18 +39,8 @@ I64 = NDArray[np.int64]
 
 #: FWHM / sigma of a Gaussian, 2 sqrt(2 ln 2).
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
-#: Sub-pixel centre methods of :func:`find_stripe_centres`; the first is the default. Steger's
-#: derivative ratio over a window several samples wide averages the laser speckle and the dot
-#: light on a stripe's flanks that a 3-point fit takes at face value: on the simulated rig with
-#: speckle and dots it cuts the per-point error of the Gaussian 3-point fit by ~40 % (on a
-#: plane at full size 0.157 -> 0.097 mm RMS with the smoothed background of
-#: :func:`smooth_background`; ``benchmarks/bench_centres.py``).
-CENTRE_METHODS = ("steger", "gaussian", "parabolic", "centroid")
-#: Steger's smoothing sigma in units of the stripe's own sigma (FWHM / 2.355). 1.0 is the
-#: matched filter; wider averages more speckle grains across the stripe (on the simulator 1.5-2
-#: is best) but takes in more of the dots beside it (on a speckle-free image with bright dots
-#: within 6 px of the stripes 1.0 is best): 1.25 is the compromise.
-STEGER_SCALE = 1.25
+#: Sub-pixel centre methods of :func:`find_stripe_centres`; the first is the default.
+CENTRE_METHODS = ("gaussian", "parabolic", "centroid", "steger")
 #: Default detection threshold in units of the highpass noise sigma. The slit image's background
 #: is an opening of clipped noise, which almost never exceeds ~1.5 sigma, so 4 sigma gives no
 #: false peaks from noise while keeping stripes whose peak is ~4x the noise.
@@ -185,39 +175,11 @@ def median_stride(stripe_width_px: float) -> int:
 
     The background at u is the median of the 9 pixels u + s*j, j = -4..4, of its row (a window
     of 8 s + 1 px). A median of 9 ignores up to 4 bright samples. A Gaussian stripe exceeds 10 %
-    of its peak over 2 * 2.15 sigma = 1.83 FWHM, so s >= 1.2 FWHM keeps it within 2 samples,
-    leaving two spare for dots, neighbour stripes' flanks or the bright side of an albedo
-    step; the window is then ~10 FWHM. (0.92 FWHM, 3 samples, let the dots around a stripe lift
-    the background under it.)
+    of its peak over 2 * 2.15 sigma = 1.83 FWHM, so s >= 0.92 FWHM keeps it within 3 samples,
+    leaving one spare for a dot, a neighbour stripe's flank or the bright side of an albedo
+    step; the window is then ~7-8 FWHM.
     """
-    return max(1, math.ceil(1.2 * stripe_width_px))
-
-
-def background_smoothing(stride: int) -> int:
-    """Width (px, odd) of the box that smooths the row median background: 2 stride + 1.
-
-    Neighbouring pixels' medians are taken over different samples, so the raw background has
-    pixel-to-pixel noise of ~0.4 noise sigma that a stripe's profile would inherit; the
-    background itself varies slowly (albedo steps are spread over +-stride px).
-    """
-    return 2 * int(stride) + 1
-
-
-def smooth_background(image: NDArray, stripe_width_px: float) -> NDArray:
-    """Row median background (:func:`row_median_background`) smoothed along the row.
-
-    Parameters
-    ----------
-    image : (H, W) uint8, uint16 or float32 image
-    stripe_width_px : stripe FWHM (px), sizes the median (:func:`median_stride`)
-
-    Returns
-    -------
-    (H, W) background, same dtype as ``image``
-    """
-    stride = median_stride(stripe_width_px)
-    k = background_smoothing(stride)
-    return cv2.blur(row_median_background(image, stride), (k, 1), borderType=cv2.BORDER_REFLECT)
+    return max(1, math.ceil(0.92 * stripe_width_px))
 
 
 def opening_length(dot_size_px: float) -> int:
@@ -509,7 +471,7 @@ def _separate(
 
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
-    bg = smooth_background(img, stripe_width_px)
+    bg = row_median_background(img, median_stride(stripe_width_px))
     hp = cv2.subtract(img, bg)  # saturates at 0 for integer images
     if hp.dtype == np.float32:
         np.maximum(hp, 0, out=hp)
@@ -653,10 +615,7 @@ def _three_point(a: F64, b: F64, c: F64, method: str) -> tuple[F64, F64]:
 def _window_offset(
     img: NDArray, r: NDArray, c: NDArray, method: str, fwhm: float, taps: int
 ) -> tuple[F64, F64]:
-    """Sub-pixel offset by centre of mass or Steger's derivative ratio over a window.
-
-    Steger smooths with ``STEGER_SCALE`` times the stripe's sigma (at least 0.7 px).
-    """
+    """Sub-pixel offset by centre of mass or Steger's derivative ratio over a window."""
     sigma = fwhm / FWHM_PER_SIGMA
     if method == "centroid":
         # centre of mass over +-1.5 sigma (~ the part above 1/3 of the peak), background ~ 0
@@ -667,7 +626,7 @@ def _window_offset(
         delta = np.where(s > 0, (p @ x) / np.where(s > 0, s, 1.0), 0.0)
     else:  # steger: zero of the first derivative of the Gaussian-smoothed profile
         # smoothing sigma_s = w / sqrt(3) with w the half-width ~ sigma * sqrt(3) (Steger 1998)
-        ss = max(STEGER_SCALE * sigma, 0.7)
+        ss = max(sigma, 0.7)
         rad = math.ceil(3 * ss)
         x = np.arange(-rad, rad + 1)
         g = np.exp(-0.5 * (x / ss) ** 2)
@@ -729,7 +688,7 @@ def _saturated_centres(
 def find_stripe_centres(
     slit_image: ArrayLike,
     noise_sigma: float | None = None,
-    method: str = "steger",
+    method: str = "gaussian",
     *,
     k_sigma: float = DEFAULT_K_SIGMA,
     saturated: ArrayLike | None = None,
@@ -742,12 +701,11 @@ def find_stripe_centres(
     per 2-pixel tie) and above ``k_sigma * noise_sigma``. Its sub-pixel column is refined by
     ``method``:
 
-    - ``"steger"`` (default): zero of the first derivative of the row profile smoothed by a
-      Gaussian of :data:`STEGER_SCALE` stripe sigmas (Steger), over +-3 smoothing sigmas;
-    - ``"gaussian"``: parabola through the logs of the 3 samples (exact for a noise-free
+    - ``"gaussian"`` (default): parabola through the logs of the 3 samples (exact for a
       Gaussian profile; falls back to the parabola where a neighbour is <= 0);
     - ``"parabolic"``: parabola through the 3 samples;
-    - ``"centroid"``: centre of mass over +-1.5 sigma of the stripe.
+    - ``"centroid"``: centre of mass over +-1.5 sigma of the stripe;
+    - ``"steger"``: zero of the derivative of the Gaussian-smoothed row profile (Steger).
 
     Runs of ``saturated`` pixels give one centre each, from a weighted Gaussian fit to the two
     unsaturated pixels on each flank (the run midpoint if the fit fails).
@@ -961,7 +919,7 @@ def extract_slits(
     stripe_width_px: float | None = None,
     dot_size_px: float | None = None,
     *,
-    method: str = "steger",
+    method: str = "gaussian",
     k_sigma: float = DEFAULT_K_SIGMA,
     saturation_level: float | None = None,
     v_smooth: int = DEFAULT_V_SMOOTH,
