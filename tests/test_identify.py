@@ -106,6 +106,15 @@ def _straightforward_scores(ref, scan_dots, pu, pv, p, allowed=None):
         ok &= (vv >= ref.vrange[r, :, 0] - hh) & (vv <= ref.vrange[r, :, 1] + hh)
         ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
         uu_all[r], vv_all[r] = np.where(ok, uu, np.nan), np.where(ok, vv, np.nan)
+    # measuring volume: the point within its row's band of slit k over the boards, widened
+    band = np.stack(
+        [curve_u(ref.curves[r][None], np.broadcast_to(uv[:, 1:2], (M, N))) for r in range(R)]
+    )
+    pad = min(p.depth_margin, 1e9) * (band.max(0) - band.min(0))
+    inside = (uv[:, 0:1] >= band.min(0) - pad) & (uv[:, 0:1] <= band.max(0) + pad)
+    if np.isfinite(p.depth_margin):
+        uu_all[:, ~inside] = np.nan
+        vv_all[:, ~inside] = np.nan
     valid = np.isfinite(vv_all).any(axis=0)
     if p.references == "nearest":
         disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
@@ -255,3 +264,22 @@ def test_order_median_equals_numpy_nanmedian():
             warnings.simplefilter("ignore", RuntimeWarning)
             want = np.nanmedian(a, axis=1)
         assert np.array_equal(_nanmedian_rows(a), want, equal_nan=True)
+
+
+def test_measuring_volume_limits_the_hypotheses(scenes_capture, scenes_reference):
+    """A point can only take a slit that lights it at a depth inside the references' volume:
+    with the volume shrunk to the boards' span, far-off slits lose their candidates, and a
+    NaN margin is a clear error."""
+    from multislit.identify import _in_volume
+
+    cap = Capture.open(scenes_capture)
+    img = cap.image(cap.root / "scans" / "holes.png")
+    ex = extract_slits(img)
+    uv = np.c_[ex.u, ex.v][ex.segment >= 0][::50]
+    wide = _in_volume(scenes_reference, uv, 1.0)
+    tight = _in_volume(scenes_reference, uv, 0.0)
+    assert (tight <= wide).all() and tight.sum() < wide.sum()
+    # the board span sweeps a few slits per row, never all of them
+    assert 1 <= np.median(wide.sum(1)) < scenes_reference.num_slits
+    with pytest.raises(IdentificationError, match="depth_margin"):
+        identify(img, scenes_reference, IdentifyParams(depth_margin=float("nan")))

@@ -218,7 +218,9 @@ def _fit_curves(
     """
     seg = ex.segment
     ids, counts = np.unique(seg[seg >= 0], return_counts=True)
-    long_ids = ids[counts >= 15]
+    # on a flat board every slit runs across the image: a short segment is a residue of dots
+    # lined up along v, not a slit
+    long_ids = ids[counts >= max(15, 0.05 * image_height)]
     use = np.isin(seg, long_ids)
     if not np.any(use):
         raise ReferenceImageError(
@@ -230,7 +232,7 @@ def _fit_curves(
     u, v, sg, row = u[order], v[order], sg[order], row[order]
     rows, start, per_row = np.unique(row, return_index=True, return_counts=True)
     complete = per_row == num_slits
-    if complete.sum() < 10:
+    if complete.sum() < max(10, 0.2 * rows.size):
         typical = int(np.bincount(per_row).argmax())
         raise ReferenceImageError(
             f"reference image {name}: found {typical} slits in most rows, expected {num_slits}; "
