@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from multislit.capture import Capture
-from multislit.identify import identify
+from multislit.identify import IdentifyParams, identify
 from multislit.reference import prepare_reference
 from multislit.sim.evaluate import identification_metrics
 from multislit.sim.rig import RigSpec
@@ -40,8 +40,18 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--scale", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument(
+        "--follow-stripe",
+        choices=("line", "off"),
+        default=IdentifyParams().follow_stripe,
+        help="how the scan template follows its stripe (IdentifyParams.follow_stripe)",
+    )
     args = ap.parse_args()
-    print(f"identification vs truth, camera scale {args.scale}, seed {args.seed}")
+    params = IdentifyParams(follow_stripe=args.follow_stripe)
+    print(
+        f"identification vs truth, camera scale {args.scale}, seed {args.seed}, "
+        f"follow_stripe={args.follow_stripe}"
+    )
     print("| rig | scene | points | correct | wrong, conf >= 0.5 | coverage | ms/frame |")
     print("|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as d:
@@ -53,7 +63,7 @@ def main() -> None:
             for p in cap.scans:
                 img = cap.image(p)
                 t = time.perf_counter()
-                ident = identify(img, ref)
+                ident = identify(img, ref, params)
                 dt = time.perf_counter() - t
                 m = identification_metrics(
                     ident, np.load(cap.root / "truth" / f"{p.stem}.npz")["slit"]

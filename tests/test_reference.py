@@ -16,6 +16,7 @@ from multislit.reference import (
     intersect_line_curves,
     prepare_reference,
     sample_patches,
+    sample_sheared_patches,
     window_sums,
 )
 
@@ -154,3 +155,21 @@ def test_sample_patches_blend_like_remap(rng, half_w, half_h):
         assert got.shape == (300, 2 * half_h + 1, 2 * half_w + 1)
         assert np.allclose(got, want, atol=1e-3)
     assert not np.any(sample_patches(img, np.array([[-50.0, -50.0]]), half_w, half_h))
+
+
+def test_sheared_patches_shift_each_row(rng):
+    img = _sparse_dots(rng, (60, 80))
+    centres = np.c_[rng.uniform(10, 70, 50), np.round(rng.uniform(12, 48, 50))]
+    half_w, half_h = 4, 6
+    ph = 2 * half_h + 1
+    # no shift: the upright patch
+    flat = sample_sheared_patches(img, centres, half_w, half_h, np.zeros((50, ph)))
+    assert np.allclose(flat, sample_patches(img, centres, half_w, half_h), atol=1e-3)
+    # row j shifted by s_j: that row of the upright patch centred s_j further right
+    shift = rng.uniform(-3, 3, (50, ph))
+    got = sample_sheared_patches(img, centres, half_w, half_h, shift)
+    for j in (0, half_h, ph - 1):
+        moved = sample_patches(img, centres + np.c_[shift[:, j], np.zeros(50)], half_w, half_h)
+        assert np.allclose(got[:, j], moved[:, j], atol=1e-3)
+    with pytest.raises(ValueError, match="row_shift must have shape"):
+        sample_sheared_patches(img, centres, half_w, half_h, np.zeros((50, ph - 1)))

@@ -77,13 +77,18 @@ def sample_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
     return out
 
 
-def _remap_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
-    """:func:`sample_patches` by ``cv2.remap`` (zero outside the image)."""
+def _remap_patches(
+    image: F32, centres: F64, half_w: int, half_h: int, row_shift: F64 | None = None
+) -> F32:
+    """:func:`sample_patches` by ``cv2.remap`` (zero outside the image); ``row_shift`` (M, ph)
+    moves each patch row sideways (see :func:`sample_sheared_patches`)."""
     m = len(centres)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
     du = np.arange(-half_w, half_w + 1, dtype=np.float32)
     dv = np.arange(-half_h, half_h + 1, dtype=np.float32)
     mx = (centres[:, 0, None, None].astype(np.float32) + du[None, None, :]).repeat(ph, axis=1)
+    if row_shift is not None:
+        mx += row_shift.astype(np.float32)[:, :, None]
     my = (centres[:, 1, None, None].astype(np.float32) + dv[None, :, None]).repeat(pw, axis=2)
     mx = mx.reshape(m * ph, pw)
     my = my.reshape(m * ph, pw)
@@ -99,6 +104,35 @@ def _remap_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
             borderValue=0,
         )
     return out.reshape(m, ph, pw)
+
+
+def sample_sheared_patches(
+    image: F32, centres: F64, half_w: int, half_h: int, row_shift: F64
+) -> F32:
+    """Bilinear patches whose rows are shifted sideways: row j of patch m is centred on column
+    ``centres[m, 0] + row_shift[m, j]`` of image row ``centres[m, 1] + j - half_h``.
+
+    This straightens a slanted or curved stripe in a template (the dots keep their place
+    across the stripe), so that it can be compared with a reference patch of another slant.
+
+    Parameters
+    ----------
+    image : (H, W) float32
+    centres : (M, 2) float64, px (u, v)
+    half_w, half_h : patch half sizes, px
+    row_shift : (M, 2*half_h+1) float64, px, sideways shift of each patch row
+
+    Returns
+    -------
+    patches : (M, 2*half_h+1, 2*half_w+1) float32 (zero outside the image)
+    """
+    ph = 2 * half_h + 1
+    shift = np.asarray(row_shift, dtype=np.float64)
+    if shift.shape != (len(centres), ph):
+        raise ValueError(f"row_shift must have shape ({len(centres)}, {ph}), got {shift.shape}")
+    if len(centres) == 0:
+        return np.zeros((0, ph, 2 * half_w + 1), np.float32)
+    return _remap_patches(np.asarray(image, np.float32), centres, half_w, half_h, shift)
 
 
 def normalise_patches(p: F32) -> F32:
