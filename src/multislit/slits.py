@@ -1073,6 +1073,7 @@ def refine_centres(
     degree: int = 1,
     max_shift_px: float = 1.0,
     steger_scale: float = REFINE_STEGER_SCALE,
+    end_rows: int | None = None,
 ) -> tuple[F64, NDArray[np.bool_]]:
     """Re-centre identified stripe points for triangulation: less laser-speckle noise.
 
@@ -1188,7 +1189,11 @@ def refine_centres(
     v_last = np.empty(K, np.intp)
     v_first[order] = r[order][first_i]
     v_last[order] = r[order][last_i]
-    reach = np.minimum(np.minimum(r - v_first, v_last - r), R)  # symmetric window half width
+    # rows near a segment's end mix two stripes (and the dot refill acts across the end):
+    # they neither get refined nor take part in other rows' fits
+    end = opening_length(ds) if end_rows is None else _int_param(end_rows, "end_rows", 0)
+    inner = np.minimum(r - v_first, v_last - r) - end
+    reach = np.minimum(inner, R)  # symmetric window half width
     n = deg + 1
     mom = np.zeros((K, 2 * n - 1))  # sums of dv^k, k = 0 .. 2 deg
     rhs = np.zeros((K, n))  # sums of dv^k (m - u), k = 0 .. deg
@@ -1197,13 +1202,13 @@ def refine_centres(
     for dv in range(-R, R + 1):  # loop over the window's rows only
         j = np.minimum(np.searchsorted(skey, key + dv), K - 1)
         nb = order[j]
-        found = has & (skey[j] == key + dv) & (abs(dv) <= reach) & row_ok[nb]
+        found = has & (skey[j] == key + dv) & (abs(dv) <= reach) & row_ok[nb] & (inner[nb] >= 0)
         wt = found.astype(np.float64)
         p = float(dv) ** powers
         mom += wt[:, None] * p[None, :]
         rhs += (wt * (m[nb] - uu))[:, None] * p[None, :n]
         count += found
-    ok = has & (reach >= R // 2) & (count >= min(deg + 2, 2 * R + 1))
+    ok = has & (reach >= R // 2) & (inner >= 0) & (count >= min(deg + 2, 2 * R + 1))
     idx = np.arange(n)
     A = mom[:, idx[:, None] + idx[None, :]]  # (K, n, n) normal equations (Hankel)
     ok &= np.abs(np.linalg.det(A)) > 1e-9 * np.maximum(mom[:, 0], 1.0) ** n
