@@ -46,9 +46,11 @@ class ScanParams:
         triangulation with :func:`~multislit.slits.refine_centres` (Steger's centre on a
         smoothed background, fitted along the stripe); the slit numbers do not change.
         Measured per-point 3D error with true slits and models (``benchmarks/bench_centres.py``,
-        default noise, 25 slits, half size 640x512): plane 0.341 -> 0.152 mm RMS, steps 0.396
-        -> 0.210 mm, spheres 0.445 -> 0.253 mm; points more than 1 mm off 1.41 -> 0.08 %,
-        7.73 -> 1.82 %, 14.77 -> 9.81 %. Costs ~40-60 ms per 640x512 frame.
+        full size 1280x1024, 25 slits, default noise): plane 0.186 -> 0.078 mm RMS, steps 0.234
+        -> 0.123 mm, spheres 0.291 -> 0.158 mm, textured 0.215 -> 0.186 mm; points more than
+        1 mm off 0.60 -> 0.58 % (steps), 3.91 -> 3.65 % (spheres); 89-97 % of the points are
+        re-centred, the rest (segment ends, close stripes) keep theirs. Costs ~40-60 ms per
+        640x512 frame.
     """
 
     identify: IdentifyParams | None = None
