@@ -18,6 +18,7 @@ from multislit.demo import demo_rig
 from multislit.errors import CalibrationError, MeasurementError
 from multislit.ply import read_ply
 from multislit.scan import (
+    ScanParams,
     ScanResult,
     load_capture_calibration,
     measure_holes_in_scan,
@@ -184,3 +185,17 @@ def test_too_few_points_is_an_error(scans):
     tiny = replace(r, points=r.points[:5], u=r.u[:5], v=r.v[:5], slit=r.slit[:5])
     with pytest.raises(MeasurementError, match="too few"):
         measure_holes_in_scan(tiny)
+
+
+def test_refined_centres_keep_slit_numbers(cap_dir, scans):
+    """Refinement runs after identification: same points and slits, only u changes."""
+    on = scans["plane"]
+    off = scan_capture(
+        cap_dir, images=[cap_dir / "scans" / "plane.png"], params=ScanParams(refine_centres=False)
+    )["plane"]
+    np.testing.assert_array_equal(on.identification.slit, off.identification.slit)
+    np.testing.assert_array_equal(on.identification.u, off.identification.u)
+    assert off.num_refined == 0 and on.num_refined > 0.8 * on.num_points
+    # the triangulated points are those of the refined centres
+    assert not np.array_equal(on.u, off.u) or on.num_points != off.num_points
+    assert abs(on.num_points - off.num_points) <= 0.01 * off.num_points

@@ -24,6 +24,7 @@ from .capture import Capture
 from .errors import CalibrationError, MeasurementError
 from .identify import Identification, IdentifyParams, identify
 from .reference import ReferenceSet, prepare_reference
+from .slits import refine_centres
 from .triangulation import triangulate
 
 F64 = NDArray[np.float64]
@@ -41,10 +42,20 @@ class ScanParams:
 
     identify : parameters of the slit identification (None: defaults)
     min_angle_deg : lines of sight meeting a slit plane at a smaller angle are dropped, deg
+    refine_centres : after the identification, re-centre the identified points for
+        triangulation with :func:`~multislit.slits.refine_centres` (Steger's centre on a
+        smoothed background, fitted along the stripe); the slit numbers do not change.
+        Measured per-point 3D error with true slits and models (``benchmarks/bench_centres.py``,
+        full size 1280x1024, 25 slits, default noise): plane 0.186 -> 0.078 mm RMS, steps 0.234
+        -> 0.123 mm, spheres 0.291 -> 0.158 mm, textured 0.215 -> 0.186 mm; points more than
+        1 mm off 0.60 -> 0.58 % (steps), 3.91 -> 3.65 % (spheres); 89-97 % of the points are
+        re-centred, the rest (segment ends, close stripes) keep theirs. Costs ~40-60 ms per
+        640x512 frame.
     """
 
     identify: IdentifyParams | None = None
     min_angle_deg: float = 2.0
+    refine_centres: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,6 +78,8 @@ class ScanResult:
     num_segments_identified : int, segments given a slit number
     dropped : dict reason -> number of segments dropped by the identification
     num_invalid : int, identified points that did not triangulate (no plane, grazing ray)
+    num_refined : int, points whose centre was refined (:attr:`ScanParams.refine_centres`);
+        the others keep the extraction's centre
     seconds : float, s, time to identify and triangulate
     message : str, '' or a note (e.g. no slits found)
     image_size : (W, H) px
@@ -88,6 +101,7 @@ class ScanResult:
     num_segments_identified: int
     dropped: dict[str, int] = field(default_factory=dict)
     num_invalid: int = 0
+    num_refined: int = 0
     seconds: float = 0.0
     message: str = ""
     image_size: tuple[int, int] = (0, 0)
@@ -126,6 +140,7 @@ class ScanResult:
             "segments_identified": self.num_segments_identified,
             "dropped": {k: int(v) for k, v in self.dropped.items()},
             "invalid": self.num_invalid,
+            "refined": self.num_refined,
             "seconds": round(float(self.seconds), 4),
             "message": self.message,
         }
@@ -244,7 +259,15 @@ def scan_image(
     t0 = time.perf_counter()
     ident = identify(image, reference, p.identify)
     m = ident.slit >= 0
-    uv = np.stack([ident.u[m], ident.v[m]], axis=1)
+    u = ident.u
+    refined = np.zeros(len(u), bool)
+    ex = ident.extraction
+    if p.refine_centres and m.any() and ex is not None and np.isfinite(ex.stripe_width_px):
+        # all points, so that a neighbouring stripe is seen even where it is not identified
+        u, refined = refine_centres(
+            image, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px
+        )
+    uv = np.stack([u[m], ident.v[m]], axis=1)
     pts, valid = triangulate(
         calibration.camera, planes, uv, ident.slit[m], min_angle_deg=p.min_angle_deg
     )
@@ -254,7 +277,7 @@ def scan_image(
     return ScanResult(
         name=name,
         points=pts[valid],
-        u=ident.u[idx].astype(np.float64),
+        u=u[idx].astype(np.float64),
         v=ident.v[idx].astype(np.float64),
         slit=slit,
         confidence=ident.confidence[idx].astype(np.float64),
@@ -267,6 +290,7 @@ def scan_image(
         num_segments_identified=int(ident.num_identified),
         dropped=dict(ident.dropped),
         num_invalid=int(np.count_nonzero(~valid)),
+        num_refined=int(np.count_nonzero(refined[idx])),
         seconds=seconds,
         message=ident.message,
         image_size=size,
