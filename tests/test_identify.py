@@ -51,12 +51,12 @@ def test_identified_points_carry_the_true_slit(results, scene):
     assert m["correct"] >= 0.995
 
 
-@pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "freeform"])
+@pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "freeform", "textured"])
 def test_few_confident_mistakes(results, scene):
     assert results[scene][1]["wrong_confident"] <= 0.001
 
 
-@pytest.mark.parametrize("scene", ["holes", "steps", "textured"])
+@pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "textured"])
 def test_most_stripe_pixels_get_a_point(results, scene):
     assert results[scene][1]["coverage"] >= 0.90
 

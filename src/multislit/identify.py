@@ -765,6 +765,12 @@ def identify(
         scores[fill] = coarse_mean[fill]
     else:
         scores = _score_candidates(reference, dots, ex.u[si], ex.v[si], p, row_shift=shift)
+    # a template cut by the top or bottom of the image by more than half its half height is
+    # mostly empty rows; it says little and is not allowed to vote (the segment's points there
+    # can still take the vote of samples further in)
+    hh = template_size(reference, p)[1]
+    cut = (ex.v[si] < 0.5 * hh) | (ex.v[si] > h - 1 - 0.5 * hh)
+    scores[cut] = np.nan
     seg = _split_segments(seg, ex.v, si, scores, p)
     votes = _segment_votes(seg[si], scores, p)
     dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0, "order": 0}

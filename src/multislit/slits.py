@@ -116,7 +116,8 @@ class SlitExtraction:
     width : (K,) float64, stripe FWHM along the row (px), NaN where unknown
     segment : (K,) int64, segment id from :func:`link_segments` (0..S-1, ordered by mean u),
         -1 for points in segments shorter than ``min_length``
-    dots : (H, W) float32, the dot image (Fig. 11 e)
+    dots : (H, W) float32, the dot image (Fig. 11 e) less its streaks (:func:`remove_streaks`:
+        pieces of stripes that lean too far for the vertical opening, on curved surfaces)
     noise_sigma : noise sigma of the highpass image (intensity units)
     stripe_width_px : stripe FWHM used (px); NaN if no stripe could be found to estimate it
     dot_size_px : dot FWHM used (px); NaN if not estimated (no stripes)
@@ -389,6 +390,38 @@ def vertical_opening(x: NDArray, length: int) -> NDArray:
     if length <= 1:
         return x.copy()
     return _running_extreme(_running_extreme(x, length, "min"), length, "max")
+
+
+#: Directions (deg from the image's vertical) of the line openings that find streaks in the dot
+#: image: pieces of stripes leaning too far for the vertical opening (curved surfaces), and
+#: edges; vertical streaks are left alone (dots in bands along the slits line up vertically).
+STREAK_ANGLES_DEG = (-75.0, -60.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+
+
+def line_kernel(length: int, angle_deg: float) -> NDArray[np.uint8]:
+    """Structuring element: a digital line of ``length`` px through the centre of a square
+    (length x length) kernel, ``angle_deg`` from the vertical (positive leans right going down)."""
+    k = np.zeros((length, length), np.uint8)
+    r = (length - 1) / 2
+    a = math.radians(angle_deg)
+    dx, dy = r * math.sin(a), r * math.cos(a)
+    cv2.line(k, (round(r - dx), round(r - dy)), (round(r + dx), round(r + dy)), 1, 1)
+    return k
+
+
+def remove_streaks(
+    dots: NDArray, length: int, angles_deg: tuple[float, ...] = STREAK_ANGLES_DEG
+) -> NDArray:
+    """The dot image less its streaks: ``dots`` minus the supremum of its grey openings with
+    lines of ``length`` px at ``angles_deg``. A dot is shorter than the line in every direction
+    and stays; a piece of stripe or an edge that contains such a line goes."""
+    if length <= 1:
+        return dots.copy()
+    out = None
+    for a in angles_deg:
+        o = cv2.morphologyEx(dots, cv2.MORPH_OPEN, line_kernel(length, a))
+        out = o if out is None else cv2.max(out, o)
+    return cv2.subtract(dots, out)
 
 
 def _saturation_level(img: NDArray, saturation_level: float | None) -> float | None:
@@ -930,7 +963,8 @@ def extract_slits(
     """Stripe centre points, their segments and the dot image of one camera image.
 
     :func:`separate` -> :func:`find_stripe_centres` (threshold ``k_sigma`` times the highpass
-    noise, saturated runs from the image) -> :func:`link_segments`. An image without slits
+    noise, saturated runs from the image) -> :func:`link_segments`; the dot image is cleaned of
+    streaks by :func:`remove_streaks`. An image without slits
     gives an empty result (zero-length arrays), not an error.
 
     Parameters
@@ -976,7 +1010,7 @@ def extract_slits(
     segment = link_segments(
         centres.u, centres.v, max_du=max_du, max_gap=max_gap, min_length=min_length
     )
-    dots = cv2.subtract(hp, slits).astype(np.float32)
+    dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(np.float32)
     return SlitExtraction(
         u=centres.u,
         v=centres.v,
