@@ -15,6 +15,7 @@ from multislit.capture import Capture
 from multislit.errors import IdentificationError
 from multislit.identify import (
     IdentifyParams,
+    _near_segment_ends,
     _sample_points,
     _score_candidates,
     _segment_votes,
@@ -326,3 +327,22 @@ def test_follow_stripe_is_checked(scenes_reference):
     img = np.zeros((512, 640), np.uint8)
     with pytest.raises(IdentificationError, match="follow_stripe"):
         identify(img, scenes_reference, IdentifyParams(follow_stripe="curve"))
+
+
+def test_junctions_of_two_slits_are_trimmed_further():
+    # three vertical segments: 0 (rows 0-49) runs into 1 (rows 50-99) at the same column, an
+    # occlusion edge where slit 4 meets slit 9; segment 2 ends freely
+    v = np.r_[np.arange(50), np.arange(50, 100), np.arange(0, 60)].astype(float)
+    u = np.r_[np.full(50, 100.0), np.full(50, 100.5), np.full(60, 200.0)]
+    seg = np.r_[np.zeros(50), np.ones(50), np.full(60, 2)].astype(np.int64)
+    near = _near_segment_ends(u, v, seg, np.array([4, 9, 4]), trim=2, junction=8)
+    rows = {s: v[near & (seg == s)] for s in range(3)}
+    assert set(rows[0]) == {0, 1} | set(range(42, 50))  # free start, junction end
+    assert set(rows[1]) == set(range(50, 58)) | {98, 99}
+    assert set(rows[2]) == {0, 1, 58, 59}
+    # the same slit on both sides (a stripe broken by a gap) is no junction
+    same = _near_segment_ends(u, v, seg, np.array([4, 4, 4]), trim=2, junction=8)
+    assert set(v[same & (seg == 0)]) == {0, 1, 48, 49}
+    # an unidentified neighbour neither
+    unk = _near_segment_ends(u, v, seg, np.array([4, -1, 4]), trim=2, junction=8)
+    assert set(v[unk & (seg == 0)]) == {0, 1, 48, 49}
