@@ -403,7 +403,7 @@ def stripe_lines(
             _, face[keep] = points_on_faces(camera, uv[keep], faces)
         keep &= face >= 0
         keep &= _edge_distance(camera, uv, face, faces) > edge_margin_px
-        keep &= _row_gap(uv[:, 0], ex.v) > 2.0 * sw
+        keep &= _row_gap(ex.u, ex.v) > 2.0 * sw
         if capture.markers_image.is_file():
             var = _albedo_variation(
                 capture.image(capture.markers_image), ex.u, ex.v, int(math.ceil(1.5 * sw))
