@@ -16,7 +16,9 @@ The pipeline (paper section 5, Figs. 15, 17, 18):
      extract_slits`) are labelled with their slit numbers by a ``label_slits(image, capture)``
      callable (by default :func:`multislit.calibrate_labels.label_by_order`: the slits' order
      along each row on the target, anchored by the confident dot identifications of
-     :mod:`multislit.identify`), each centre's line
+     :mod:`multislit.identify`), the labelled centres are re-centred by
+     :func:`multislit.slits.refine_centres` (Steger on a smoothed background, a line fitted
+     along the stripe on each face; :data:`CALIBRATION_REFINE`), each centre's line
      of sight (refined camera, distortion removed) is intersected with the target face it
      falls on, and centres that are not trustworthy are dropped: outside every face, within
      ``edge_margin_px`` of a face's outline in the image (the stripe bends there), where the
@@ -86,6 +88,19 @@ from .geometry import F64, MatrixCamera, PinholeCamera
 #: per-slit residual falls from 0.093 to 0.067 mm (median) and the triangulation error of true
 #: points from 0.041 to 0.031 mm RMS.
 CALIBRATION_EXTRACT: dict[str, Any] = {"dot_size_px": 0.5, "method": "steger"}
+#: Re-centring of the labelled calibration stripe points by :func:`multislit.slits.refine_centres`
+#: (its keyword arguments; None keeps the extraction's centres). The fit along the stripe runs
+#: within one target face (segments are cut where the stripe changes face), and the dot refill
+#: uses the extraction's dot size (``dot_size_px`` of :data:`CALIBRATION_EXTRACT`: the stripe
+#: width would cut the ramp's slanted stripes, per-slit residual 0.046 mm median but 0.13 max
+#: and 0.039 mm triangulation error). Measured with ``benchmarks/bench_calibration.py``, full
+#: size (seed 0): per-slit residual 0.067 -> 0.045 mm median (max 0.091 -> 0.054), true points
+#: 0.031 -> 0.027 mm RMS (hand-read planes 0.022; seed 1: residual 0.064 -> 0.040, true points
+#: 0.0375 -> 0.0373, hand 0.037: there the camera limits); half size (the tests' capture):
+#: 0.15 -> 0.079 mm median (max 0.20 -> 0.11), true points 0.25 -> 0.16 mm RMS. Cutting the
+#: segments at the faces' folds changes little (half size 0.165 -> 0.162 mm): the edge margin
+#: already drops the centres near a fold.
+CALIBRATION_REFINE: dict[str, Any] | None = {}
 #: Centres closer than this to their face's outline in the image are dropped (px).
 DEFAULT_EDGE_MARGIN_PX = 3.0
 #: Centres where the target's albedo (markers image) varies by more than this fraction under
@@ -619,12 +634,36 @@ def _row_gap(u: F64, v: F64) -> F64:
     return out
 
 
+_DEFAULT = object()
+
+
+def _refined_u(
+    img: NDArray, ex: Any, face: NDArray[np.intp], n_faces: int, opts: dict[str, Any]
+) -> F64:
+    """Columns (K,) px of the extraction's centres after :func:`~multislit.slits.refine_centres`.
+
+    Each linked segment is cut into its pieces on one face (``face`` (K,), -1: left as is), so
+    the fit along the stripe never spans the fold between two faces.
+    """
+    from .slits import refine_centres
+
+    seg = np.asarray(ex.segment, np.int64)
+    piece = np.where((seg >= 0) & (face >= 0), seg * max(n_faces, 1) + face, -1)
+    sw = ex.stripe_width_px if math.isfinite(ex.stripe_width_px) else 3.0
+    kw = dict(opts)
+    if math.isfinite(ex.dot_size_px):
+        kw.setdefault("dot_size_px", ex.dot_size_px)
+    u, _ = refine_centres(img, ex.u, ex.v, piece, sw, **kw)
+    return u
+
+
 def auto_slit_points(
     capture: str | Path | Capture,
     camera: PinholeCamera | MatrixCamera,
     label_slits: LabelFn,
     edge_margin_px: float = DEFAULT_EDGE_MARGIN_PX,
     extract: dict[str, Any] | None = None,
+    refine: dict[str, Any] | None | object = _DEFAULT,
 ) -> SlitPointSet:
     """Points on the slits from ``calibration/slits.png``, labelled by ``label_slits``.
 
@@ -636,6 +675,9 @@ def auto_slit_points(
     edge_margin_px : px, centres nearer to their face's outline in the image are dropped
     extract : keyword arguments of :func:`multislit.slits.extract_slits`
         (default :data:`CALIBRATION_EXTRACT`)
+    refine : keyword arguments of :func:`multislit.slits.refine_centres` for the labelled
+        centres on the target's faces (default :data:`CALIBRATION_REFINE`); None keeps the
+        extraction's centres. The labels are transferred before, from the extraction's centres.
 
     Returns
     -------
@@ -671,15 +713,19 @@ def auto_slit_points(
     face = np.full(len(uv), -1, np.intp)
     if np.any(keep):
         xyz[keep], face[keep] = points_on_faces(camera, uv[keep], faces)
+    opts = CALIBRATION_REFINE if refine is _DEFAULT else refine
+    if opts is not None and np.any(keep):
+        uv[:, 0] = _refined_u(img, ex, np.where(keep, face, -1), len(faces), opts)
+        xyz[keep], face[keep] = points_on_faces(camera, uv[keep], faces)
     keep &= face >= 0
     steps.append(("on a target face", int(keep.sum())))
     keep &= _edge_distance(camera, uv, face, faces) > edge_margin_px
     steps.append((f"> {edge_margin_px:g} px from the face outline", int(keep.sum())))
-    keep &= _row_gap(ex.u, ex.v) > 2.0 * sw
+    keep &= _row_gap(uv[:, 0], ex.v) > 2.0 * sw
     steps.append(("single detection in the row", int(keep.sum())))
     if cap.markers_image.is_file():
         mimg = cap.image(cap.markers_image)
-        var = _albedo_variation(mimg, ex.u, ex.v, int(math.ceil(1.5 * sw)))
+        var = _albedo_variation(mimg, uv[:, 0], ex.v, int(math.ceil(1.5 * sw)))
         keep &= var <= MAX_ALBEDO_VARIATION
         steps.append(("uniform albedo under the stripe", int(keep.sum())))
     return SlitPointSet(xyz[keep], slit[keep], uv[keep], face[keep], "auto", tuple(steps))
