@@ -126,12 +126,12 @@ def cmd_holes(args: argparse.Namespace) -> int:
     measurements = {}
     if src.is_dir():
         from .capture import Capture
-        from .scan import load_capture_calibration, scan_capture
+        from .scan import HOLE_SCAN_PARAMS, load_capture_calibration, scan_capture
 
         cap = Capture.open(src, require_target=False)
         cal = load_capture_calibration(cap, args.calibration)
         images = [Path(args.image)] if args.image else None
-        results = scan_capture(cap, calibration=cal, images=images)
+        results = scan_capture(cap, calibration=cal, images=images, params=HOLE_SCAN_PARAMS)
         for name, res in results.items():
             img = cap.image(images[0] if images else cap.root / "scans" / f"{name}.png")
             measurements[name] = measure_holes_in_scan(

@@ -103,7 +103,7 @@ def run_demo(
 ) -> dict[str, Any]:
     """Run the demo, writing everything into ``out``; returns the figures and report lines."""
     from .calibrate import run_calibration, write_calibration
-    from .scan import capture_reference, measure_holes_in_scan, scan_image
+    from .scan import HOLE_SCAN_PARAMS, capture_reference, measure_holes_in_scan, scan_image
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -134,7 +134,7 @@ def run_demo(
     for path in cap.scans:
         name = path.stem
         img = cap.image(path)
-        res = scan_image(img, ref, cal, name=name)
+        res = scan_image(img, ref, cal, HOLE_SCAN_PARAMS, name=name)
         res.write_ply(out / f"{name}.ply", comment=f"multislit demo scan {name}")
         hm = measure_holes_in_scan(res, image=img, calibration=cal)
         tr_scene = truth["scenes"][name]
