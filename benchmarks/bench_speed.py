@@ -1,6 +1,7 @@
 """Single-shot pipeline speed per frame at full size (1280x1024), one core.
 
-Stages timed per frame: slit/dot extraction, identification, triangulation; the reference is
+Stages timed per frame: slit/dot extraction, identification, centre refinement (what
+``scan_image`` does by default, ``ScanParams.refine_centres``), triangulation; the reference is
 prepared beforehand (once per rig). The slit planes and camera for triangulation are the
 simulator's true models (the timing does not depend on their values). The floor a frame cannot
 beat is one cv2.medianBlur pass over the same frame.
@@ -35,7 +36,7 @@ from multislit.identify import IdentifyParams, identify, template_size
 from multislit.reference import prepare_reference
 from multislit.sim.rig import RigSpec
 from multislit.sim.simulate import simulate_capture
-from multislit.slits import extract_slits
+from multislit.slits import extract_slits, refine_centres
 from multislit.triangulation import triangulate
 
 
@@ -58,7 +59,7 @@ def run(num_slits: int, repeat: int, workdir: Path) -> dict:
     rows = []
     for p in cap.scans:
         img = cap.image(p)
-        t_med, t_ex, t_id, t_tri, npts = [], [], [], [], 0
+        t_med, t_ex, t_id, t_ref, t_tri, npts = [], [], [], [], [], 0
         for _ in range(repeat):
             t0 = time.perf_counter()
             cv2.medianBlur(img, 5)
@@ -69,15 +70,20 @@ def run(num_slits: int, repeat: int, workdir: Path) -> dict:
             t2 = time.perf_counter()
             ident = identify(img, ref, extraction=ex)
             t3 = time.perf_counter()
-            ok = ident.identified
-            pts, valid = triangulate(cam, planes, np.c_[ident.u[ok], ident.v[ok]], ident.slit[ok])
+            u, _ = refine_centres(
+                img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px
+            )
             t4 = time.perf_counter()
+            ok = ident.identified
+            pts, valid = triangulate(cam, planes, np.c_[u[ok], ident.v[ok]], ident.slit[ok])
+            t5 = time.perf_counter()
             t_med.append(t1 - t0)
             t_ex.append(t2 - t1)
             t_id.append(t3 - t2)
-            t_tri.append(t4 - t3)
+            t_ref.append(t4 - t3)
+            t_tri.append(t5 - t4)
             npts = int(valid.sum())
-        total = statistics.median(np.add(np.add(t_ex, t_id), t_tri))
+        total = statistics.median(np.add(np.add(np.add(t_ex, t_id), t_ref), t_tri))
         rows.append(
             {
                 "slits": num_slits,
@@ -86,6 +92,7 @@ def run(num_slits: int, repeat: int, workdir: Path) -> dict:
                 "median_blur_ms": 1e3 * statistics.median(t_med),
                 "extract_ms": 1e3 * statistics.median(t_ex),
                 "identify_ms": 1e3 * statistics.median(t_id),
+                "refine_ms": 1e3 * statistics.median(t_ref),
                 "triangulate_ms": 1e3 * statistics.median(t_tri),
                 "total_ms": 1e3 * total,
                 "points_per_s": npts / total,
@@ -111,13 +118,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         rows = [r for n in args.slits for r in run(n, args.repeat, Path(d))]
     print(
-        "| slits | scene | points | medianBlur ms | extract ms | identify ms | triangulate ms | total ms | x medianBlur | points/s |"
+        "| slits | scene | points | medianBlur ms | extract ms | identify ms | refine ms | triangulate ms | total ms | x medianBlur | points/s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['slits']} | {r['scene']} | {r['points']} | {r['median_blur_ms']:.1f} | {r['extract_ms']:.1f} | "
-            f"{r['identify_ms']:.1f} | {r['triangulate_ms']:.1f} | {r['total_ms']:.1f} | "
+            f"{r['identify_ms']:.1f} | {r['refine_ms']:.1f} | {r['triangulate_ms']:.1f} | {r['total_ms']:.1f} | "
             f"{r['total_ms'] / r['median_blur_ms']:.0f} | {r['points_per_s']:.0f} |"
         )
     for n in args.slits:
