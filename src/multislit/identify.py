@@ -741,6 +741,10 @@ def identify(
         raise IdentificationError(
             f"params.follow_stripe must be 'line' or 'off', got {p.follow_stripe!r}"
         )
+    if not p.junction_samples >= 0:  # also catches NaN
+        raise IdentificationError(
+            f"params.junction_samples must be >= 0 (sample steps), got {p.junction_samples}"
+        )
     if not p.depth_margin >= 0:  # also catches NaN
         raise IdentificationError(
             f"params.depth_margin must be >= 0 (or inf for no depth limit), got {p.depth_margin}"
