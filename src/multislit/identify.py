@@ -142,15 +142,27 @@ class Identification:
         return int(sum(self.dropped.values()))
 
 
-def _sample_points(seg: I64, v: F64, step_px: float) -> NDArray[np.intp]:
-    """Indices of points spaced about ``step_px`` rows apart along each segment."""
+def _segment_runs(seg: I64, v: F64) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """The linked points ordered by (segment, v), and for each of them the positions (in that
+    order) of its segment's first and last point: ``order, first, last``, each (K',)."""
     idx = np.flatnonzero(seg >= 0)
-    if idx.size == 0:
-        return idx
     order = idx[np.lexsort((v[idx], seg[idx]))]
     s = seg[order]
-    first = np.r_[True, s[1:] != s[:-1]]
-    start_v = np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+    pos = np.arange(len(order))
+    starts = np.r_[True, s[1:] != s[:-1]] if len(order) else np.zeros(0, bool)
+    ends = np.r_[s[1:] != s[:-1], True] if len(order) else np.zeros(0, bool)
+    first = np.maximum.accumulate(np.where(starts, pos, 0)) if len(order) else pos
+    # the last point of each run, propagated backwards
+    last = np.minimum.accumulate(np.where(ends, pos, len(order))[::-1])[::-1]
+    return order, first, last
+
+
+def _sample_points(seg: I64, v: F64, step_px: float) -> NDArray[np.intp]:
+    """Indices of points spaced about ``step_px`` rows apart along each segment."""
+    order, start_v, _ = _segment_runs(seg, v)
+    if order.size == 0:
+        return order
+    s = seg[order]
     rel = v[order] - v[order][start_v]
     bucket = np.floor(rel / step_px + 0.5).astype(np.int64)
     # keep the first point of each (segment, bucket)
@@ -220,17 +232,12 @@ def _near_segment_ends(
     the other stripe, so more of them are left out than at a free end.
     """
     out = np.zeros(len(seg), bool)
-    idx = np.flatnonzero(seg >= 0)
-    if idx.size == 0:
+    o, fi, li = _segment_runs(seg, v)
+    if o.size == 0:
         return out
-    o = idx[np.lexsort((v[idx], seg[idx]))]
     sg = seg[o]
-    first = np.r_[True, sg[1:] != sg[:-1]]
-    last = np.r_[sg[1:] != sg[:-1], True]
-    fi = np.maximum.accumulate(np.where(first, np.arange(len(o)), 0))
-    # index of the last point of each run, propagated backwards
-    li = np.minimum.accumulate(np.where(last, np.arange(len(o)), len(o))[::-1])[::-1]
-    ends = np.r_[np.flatnonzero(first), np.flatnonzero(last)]  # positions in o
+    pos = np.arange(len(o))
+    ends = np.r_[pos[fi == pos], pos[li == pos]]  # positions in o of first and last points
     pts = np.c_[u[o[ends]], v[o[ends]]]
     joined = np.zeros(len(o), bool)  # per position in o: is this end a junction
     if len(ends) > 1:
