@@ -54,9 +54,8 @@ class IdentifyParams:
     trim_rows : rows at each end of a segment left unidentified (junctions of two stripes)
     junction_samples : at an end where the segment meets the end of a segment identified as
         another slit (a stripe running into another slit's stripe at an occlusion edge), this
-        many sample steps of
-        rows (at least ``trim_rows``) are left unidentified: the split there is only as exact
-        as the samples. On the half-size accuracy suite's tilted plate it took the flatness F
+        many sample steps of rows (at least ``trim_rows``) are left unidentified: the split
+        there is only as exact as the samples. On the half-size accuracy suite's tilted plate it took the flatness F
         (0.3 % left out) from 6.08 to 2.38 mm, at the cost of 2 % of its points
     references : "nearest" (compare each hypothesis in the reference whose board lies nearest
         the surface) or "all" (best over all references; slower)
@@ -147,11 +146,13 @@ def _segment_runs(seg: I64, v: F64) -> tuple[NDArray[np.intp], NDArray[np.intp],
     order) of its segment's first and last point: ``order, first, last``, each (K',)."""
     idx = np.flatnonzero(seg >= 0)
     order = idx[np.lexsort((v[idx], seg[idx]))]
-    s = seg[order]
     pos = np.arange(len(order))
-    starts = np.r_[True, s[1:] != s[:-1]] if len(order) else np.zeros(0, bool)
-    ends = np.r_[s[1:] != s[:-1], True] if len(order) else np.zeros(0, bool)
-    first = np.maximum.accumulate(np.where(starts, pos, 0)) if len(order) else pos
+    if order.size == 0:
+        return order, pos, pos
+    s = seg[order]
+    starts = np.r_[True, s[1:] != s[:-1]]
+    ends = np.r_[s[1:] != s[:-1], True]
+    first = np.maximum.accumulate(np.where(starts, pos, 0))
     # the last point of each run, propagated backwards
     last = np.minimum.accumulate(np.where(ends, pos, len(order))[::-1])[::-1]
     return order, first, last
@@ -194,8 +195,7 @@ def _template_row_shift(
         return None
     dy = np.arange(-hh, hh + 1, dtype=np.float64)
     # the segment's centre in every template row (absent where the segment has no point there)
-    on = np.flatnonzero(seg >= 0)
-    order = on[np.lexsort((v[on], seg[on]))]
+    order = _segment_runs(seg, v)[0]
     span = float(np.ceil(v.max()) + 2 * hh + 2)
     keys = seg[order] * span + np.rint(v[order])
     want = (seg[si] * span + np.rint(v[si]))[:, None] + dy[None, :]
@@ -791,9 +791,8 @@ def identify(
     step = max(2.0, p.sample_step * reference.spacing_px)
     si = _sample_points(seg, ex.v, step)
     dots = ex.dots.astype(np.float32)
-    shift = _template_row_shift(
-        ex.u, ex.v, seg, si, reference, template_size(reference, p)[1], p.follow_stripe
-    )
+    hh = template_size(reference, p)[1]
+    shift = _template_row_shift(ex.u, ex.v, seg, si, reference, hh, p.follow_stripe)
     if p.coarse_every > 1 and reference.num_slits > p.keep_hypotheses:
         # coarse to fine: every slit on a few samples of each segment, then on every sample only
         # the few slits each segment's coarse samples liked best
@@ -834,7 +833,6 @@ def identify(
     # a template cut by the top or bottom of the image by more than half its half height is
     # mostly empty rows; it says little and is not allowed to vote (the segment's points there
     # can still take the vote of samples further in)
-    hh = template_size(reference, p)[1]
     cut = (ex.v[si] < 0.5 * hh) | (ex.v[si] > h - 1 - 0.5 * hh)
     scores[cut] = np.nan
     seg = _split_segments(seg, ex.v, si, scores, p)
@@ -871,7 +869,7 @@ def identify(
         for jj in (j - 1, j):
             same = seg[us[jj]] == seg
             reach = np.where(same, np.minimum(reach, np.abs(ex.v[us[jj]] - ex.v)), reach)
-    has &= reach <= max(step, template_size(reference, p)[1])
+    has &= reach <= max(step, hh)
     # the rows at a segment's ends are where it meets another surface or slit: the centre there
     # mixes two stripes, so they are not vouched for
     if p.trim_rows > 0 and has.any():
