@@ -15,6 +15,7 @@ from multislit.capture import Capture
 from multislit.errors import IdentificationError
 from multislit.identify import (
     IdentifyParams,
+    _between_agreeing,
     _near_segment_ends,
     _sample_points,
     _score_candidates,
@@ -57,8 +58,9 @@ def test_few_confident_mistakes(results, scene):
     assert results[scene][1]["wrong_confident"] <= 0.001
 
 
-@pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "textured"])
+@pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "freeform", "textured"])
 def test_most_stripe_pixels_get_a_point(results, scene):
+    # measured: holes 94.5, spheres 91.6, steps 96.1, freeform 90.4, textured 96.1 %
     assert results[scene][1]["coverage"] >= 0.90
 
 
@@ -313,14 +315,16 @@ def tilted_plate(small_rig):
 
 
 def test_template_follows_a_leaning_stripe(scenes_reference, tilted_plate):
-    # half size, seed 5 (measured): line 99.3 % correct, 92 % coverage; upright 97.1 %, 61 %
+    # half size, seed 5 (measured): line 99.3 % correct, 92 % coverage; upright 97.1 %, 61 %.
+    # Since the extraction refills dots along the stripe (no more staircase centres on leaning
+    # stripes): line 93.7 % coverage, upright 81.8 %; the absolute bar is raised to 90 %
     got = {}
     for mode in ("line", "off"):
         ident = identify(tilted_plate.image, scenes_reference, IdentifyParams(follow_stripe=mode))
         got[mode] = identification_metrics(ident, tilted_plate.slit)
     assert got["line"]["correct"] >= 0.99
-    assert got["line"]["coverage"] >= 0.85
-    assert got["line"]["coverage"] >= got["off"]["coverage"] + 0.15
+    assert got["line"]["coverage"] >= 0.90
+    assert got["line"]["coverage"] >= got["off"]["coverage"] + 0.10
 
 
 def test_follow_stripe_is_checked(scenes_reference):
@@ -348,3 +352,24 @@ def test_junctions_of_two_slits_are_trimmed_further():
     # an unidentified neighbour neither
     unk = _near_segment_ends(u, v, seg, np.array([4, -1, 4]), trim=2, junction=8)
     assert set(v[unk & (seg == 0)]) == {0, 1, 48, 49}
+
+
+def test_order_label_needs_agreeing_neighbours():
+    # one row-run of five stripes, the middle one without a dot label. Between slits 17 and 21
+    # (two slits hidden, no gap wide enough to cut the run) neither 18 nor 20 is vouched for;
+    # between 17 and 19 the label 18 is
+    run = np.zeros(5, np.intp)
+    rank = np.arange(5, dtype=np.intp)
+    for votes, lab, expect in (
+        ([16, 17, -1, 21, 22], 20, False),
+        ([16, 17, -1, 21, 22], 18, False),
+        ([16, 17, -1, 19, 20], 18, True),
+        ([16, 17, -1, 19, 20], 19, False),
+    ):
+        vote = np.array(votes, np.intp)
+        labs = np.where(vote >= 0, vote, lab).astype(np.intp)
+        ok = _between_agreeing(run, rank, vote, vote >= 0, labs)
+        assert ok[2] == expect, (votes, lab)
+    # no dot-identified stripe on one side: not vouched for
+    vote = np.array([-1, -1, -1, 19, 20], np.intp)
+    assert not _between_agreeing(run, rank, vote, vote >= 0, np.arange(16, 21))[:3].any()

@@ -81,7 +81,9 @@ class IdentifyParams:
         49-slit spheres (98.5 -> 98.1 %)
     min_score : a segment's best mean NCC must reach this
     min_confidence : segments below this confidence are dropped
-    min_samples : segments with fewer sample points are dropped (too short to vote)
+    min_samples : segments with fewer sample points are dropped (too short to vote). 3, not
+        2: on the half-size free-form scene a 6-row piece with 2 samples took slit 0 for 17
+        with confidence 0.76; with 3 (benchmarks/bench_identify.py) no scene lost coverage
     chunk : most sample points scored in one block (with a ~4 MB bound on the reference
         windows gathered at once; bounds memory, not results)
     """
@@ -100,7 +102,7 @@ class IdentifyParams:
     follow_stripe: str = "line"
     min_score: float = 0.15
     min_confidence: float = 0.30
-    min_samples: int = 2
+    min_samples: int = 3
     chunk: int = 400
 
     def junction_rows(self, step_px: float) -> int:
@@ -659,6 +661,44 @@ def _order_violations(
     return {(int(gg[i]), int(gg[i + 1])) for i in np.flatnonzero(bad)}
 
 
+def _between_agreeing(
+    run: NDArray[np.intp],
+    rank: NDArray[np.intp],
+    vote: NDArray[np.intp],
+    voted: NDArray[np.bool_],
+    lab: NDArray[np.intp],
+) -> NDArray[np.bool_]:
+    """For each point: do the nearest dot-identified stripes left and right of it in its run
+    agree with each other and with its order label ``lab``? (their slits differ by their rank
+    difference, and ``lab`` is the left one's slit plus the rank step). A run's majority offset
+    can disagree with the stripes right beside a point where a hidden slit leaves no gap wide
+    enough to cut the run (measured: on the half-size free-form scene two segments next to an
+    occluded pair of slits took slit 20 for 18)."""
+    out = np.zeros(len(run), bool)
+    vi = np.flatnonzero(voted)
+    if vi.size == 0:
+        return out
+    big = np.int64(rank.max()) + 2
+    key_v = run[vi].astype(np.int64) * big + rank[vi]
+    o = np.argsort(key_v, kind="stable")
+    vi, key_v = vi[o], key_v[o]
+    q = np.flatnonzero((run >= 0) & (lab >= 0))
+    if q.size == 0:
+        return out
+    key_q = run[q].astype(np.int64) * big + rank[q]
+    j = np.searchsorted(key_v, key_q)  # first voted at or after the point
+    has_l = j > 0
+    has_r = j < len(vi)
+    jl = np.clip(j - 1, 0, len(vi) - 1)
+    jr = np.clip(j, 0, len(vi) - 1)
+    left, right = vi[jl], vi[jr]
+    ok = has_l & has_r & (run[left] == run[q]) & (run[right] == run[q])
+    ok &= (vote[right] - vote[left]) == (rank[right] - rank[left])
+    ok &= lab[q] == vote[left] + (rank[q] - rank[left])
+    out[q] = ok
+    return out
+
+
 def _fill_by_order(
     u: F64, v: F64, seg: I64, slit: I64, conf: F64, usable: NDArray[np.bool_], num_slits: int
 ) -> dict[int, tuple[int, float]]:
@@ -668,7 +708,8 @@ def _fill_by_order(
     gap or a double detection cuts the run); each run's offset ``slit - rank`` must be agreed by
     its dot-identified points (>= 80 %, >= 3 votes, from >= 2 different stripes;
     :mod:`multislit.order`), and only between dot-identified stripes of the run (no
-    extrapolation). A segment without a dot label takes the run label only
+    extrapolation) whose nearest ones on either side agree with the label
+    (:func:`_between_agreeing`). A segment without a dot label takes the run label only
     if >= 95 % of its points carry the same one;
     its confidence is that agreement times 0.6: order-inferred labels never count as certain.
     """
@@ -695,6 +736,7 @@ def _fill_by_order(
     np.maximum.at(hi, run[voted], rank[voted])
     inside = (run >= 0) & (rank > lo[np.maximum(run, 0)]) & (rank < hi[np.maximum(run, 0)])
     lab = np.where(inside, lab, -1)
+    lab = np.where(_between_agreeing(run, rank, vote, voted, lab), lab, -1)
     out: dict[int, tuple[int, float]] = {}
     free = np.unique(seg[ok & (slit < 0) & usable])
     if free.size == 0:
