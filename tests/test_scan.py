@@ -199,3 +199,24 @@ def test_refined_centres_keep_slit_numbers(cap_dir, scans):
     # the triangulated points are those of the refined centres
     assert not np.array_equal(on.u, off.u) or on.num_points != off.num_points
     assert abs(on.num_points - off.num_points) <= 0.01 * off.num_points
+
+
+def test_stripe_line_from_calibration_follows_the_stripe(cap_dir, scans, truth):
+    # the hole-edge profile runs along the calibration's stripe line on the plate; on the plane
+    # scan that line must lie on the measured stripe centres (half size; measured median
+    # |du| 0.012-0.090 px per slit)
+    from multislit.scan import _stripe_line_in_image
+
+    cal = load_capture_calibration(Capture.open(cap_dir))
+    r = scans["plane"]
+    pl = np.asarray(truth["scenes"]["plane"]["plane"], float)
+    meds = []
+    for k in np.unique(r.slit)[::4]:
+        m = np.flatnonzero(r.slit == k)
+        s = m[len(m) // 2]
+        uu, vv = _stripe_line_in_image(cal, cal.slit_planes.planes[k], pl, r.points[s])
+        b, a = np.polyfit(vv, uu, 1)
+        near = m[np.abs(r.v[m] - r.v[s]) <= 10]
+        meds.append(np.median(np.abs(a + b * r.v[near] - r.u[near])))
+    assert len(meds) >= 5
+    assert np.max(meds) < 0.3, meds
