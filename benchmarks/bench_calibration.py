@@ -5,8 +5,8 @@ Simulates ``simulate_capture(out, ["plane"], RigSpec(), seed=0)`` (full size, 12
 seed 3) unless ``out`` already holds a capture, runs
 ``run_calibration(out)`` (automatic projector calibration, the default) and prints:
 
-- the per-slit residual of the automatic points to their planes (median and max, mm) and the
-  number of slits with a plane;
+- the per-slit residual of the automatic points to their planes (median and max, mm), the
+  number of slits with a plane, and the RMS over all their points;
 - the RMS error (mm) of true stripe points (true pixels on the true planes, from the scan's
   truth) triangulated with the calibration, as ``tests/test_calibrate.py::truth_triangulation``.
 
@@ -83,6 +83,9 @@ def main() -> None:
         f"{np.nanmedian(sp.rms_mm):.4f} mm, max {np.nanmax(sp.rms_mm):.4f} mm "
         f"(from axis: {list(sp.from_axis)})"
     )
+    fit = np.isfinite(sp.rms_mm) & (sp.counts > 0)
+    pooled = np.sqrt(np.sum(sp.counts[fit] * sp.rms_mm[fit] ** 2) / np.sum(sp.counts[fit]))
+    print(f"slit-plane RMS over all {int(sp.counts[fit].sum())} points: {pooled:.4f} mm")
     print(f"true points: {share:.4f} valid, RMS {rms(err):.4f} mm vs truth ({len(err)} points)")
     print(f"calibration {secs:.1f} s")
 
