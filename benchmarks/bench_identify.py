@@ -46,11 +46,17 @@ def main() -> None:
         default=IdentifyParams().follow_stripe,
         help="how the scan template follows its stripe (IdentifyParams.follow_stripe)",
     )
+    ap.add_argument(
+        "--depth-margin",
+        type=float,
+        default=IdentifyParams().depth_margin,
+        help="the measuring volume's margin (IdentifyParams.depth_margin; inf: no limit)",
+    )
     args = ap.parse_args()
-    params = IdentifyParams(follow_stripe=args.follow_stripe)
+    params = IdentifyParams(follow_stripe=args.follow_stripe, depth_margin=args.depth_margin)
     print(
         f"identification vs truth, camera scale {args.scale}, seed {args.seed}, "
-        f"follow_stripe={args.follow_stripe}"
+        f"follow_stripe={args.follow_stripe}, depth_margin={args.depth_margin}"
     )
     print("| rig | scene | points | correct | wrong, conf >= 0.5 | coverage | ms/frame |")
     print("|---|---|---|---|---|---|---|")
