@@ -18,6 +18,7 @@ demo: $(BIN)/activate
 
 test: $(BIN)/activate
 	$(BIN)/ruff check src tests benchmarks
+	$(BIN)/ruff format --check src tests benchmarks
 	$(BIN)/python -m pytest -q
 
 bench: $(BIN)/activate

@@ -19,7 +19,10 @@ def main() -> None:
     rig = SimulatedRig.build()
     camera_rays(rig)  # the per-camera ray table is built once per rig, not per image
     rng = np.random.default_rng(0)
-    scenes = [("reference board", reference_board(900), True), ("target (markers)", standard_object()[0], False)]
+    scenes = [
+        ("reference board", reference_board(900), True),
+        ("target (markers)", standard_object()[0], False),
+    ]
     scenes += [(name, make_scene(name), True) for name in SCENES]
     w, h = rig.camera.image_size
     print(f"render time per {w}x{h} image, median of 3 (2-core machine), seconds")

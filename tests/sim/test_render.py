@@ -166,7 +166,9 @@ def test_sensor_saturates_and_quantises(small_rig):
     assert img.dtype == np.uint8 and img.max() == 255 and (img == 255).sum() > 1000
 
 
-@pytest.mark.parametrize("name", sorted(__import__("multislit.sim.scene", fromlist=["SCENES"]).SCENES))
+@pytest.mark.parametrize(
+    "name", sorted(__import__("multislit.sim.scene", fromlist=["SCENES"]).SCENES)
+)
 def test_every_scene_renders_with_slits(name):
     from multislit.sim.rig import RigSpec
     from multislit.sim.scene import make_scene
