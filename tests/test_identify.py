@@ -331,8 +331,8 @@ def test_follow_stripe_is_checked(scenes_reference):
     img = np.zeros((512, 640), np.uint8)
     with pytest.raises(IdentificationError, match="follow_stripe"):
         identify(img, scenes_reference, IdentifyParams(follow_stripe="curve"))
-    with pytest.raises(IdentificationError, match="junction_samples"):
-        identify(img, scenes_reference, IdentifyParams(junction_samples=float("nan")))
+    with pytest.raises(IdentificationError, match="junction_template"):
+        identify(img, scenes_reference, IdentifyParams(junction_template=float("nan")))
 
 
 def test_junctions_of_two_slits_are_trimmed_further():

@@ -52,11 +52,17 @@ class IdentifyParams:
     order_fill : give segments the dots left unidentified the slit number their place in the
         row implies, when the dot-identified stripes around them agree (confidence <= 0.6)
     trim_rows : rows at each end of a segment left unidentified (junctions of two stripes)
-    junction_samples : at an end where the segment meets the end of a segment identified as
-        another slit (a stripe running into another slit's stripe at an occlusion edge), this
-        many sample steps of rows (at least ``trim_rows``) are left unidentified: the split
-        there is only as exact as the samples. On the half-size accuracy suite's tilted plate it took the flatness F
-        (0.3 % left out) from 6.08 to 2.38 mm, at the cost of 2 % of its points
+    junction_template : at an end where the segment meets the end of a segment identified as
+        another slit (a stripe running into another slit's stripe at an occlusion edge), the
+        rows within this fraction of the template's half height (at least ``trim_rows``) are
+        left unidentified: a sample whose template straddles the junction votes for the side
+        with more dot contrast, so the split there is only as exact as the template is tall.
+        Measured with benchmarks/bench_identify.py (half size, seed 11) against the earlier
+        rule of 1.5 sample steps (8 rows at 25 slits, 4 at 49): 0.4 (11 and 14 rows) took the
+        49-slit steps scene's confidently wrong points from 0.25 to 0.07 % and the spheres'
+        correct share from 99.44 to 99.54 %, for 0.2-1.5 points of coverage at 49 slits and
+        0.1 at 25 (steps). 5 sample steps instead (26 rows at 25 slits) did as well at 49 slits
+        but cost a plate tilted 25 deg 6.5 points of coverage at 25 slits
     references : "nearest" (compare each hypothesis in the reference whose board lies nearest
         the surface) or "all" (best over all references; slower)
     sample_step : distance between sample points along a segment (x spacing)
@@ -97,7 +103,7 @@ class IdentifyParams:
     coarse_every: int = 1
     keep_hypotheses: int = 3
     trim_rows: int = 2
-    junction_samples: float = 1.5
+    junction_template: float = 0.4
     order_fill: bool = True
     follow_stripe: str = "line"
     min_score: float = 0.15
@@ -105,9 +111,9 @@ class IdentifyParams:
     min_samples: int = 3
     chunk: int = 400
 
-    def junction_rows(self, step_px: float) -> int:
-        """Rows left out next to a junction of two segments, for a sample step (px)."""
-        return max(self.trim_rows, int(math.ceil(self.junction_samples * step_px)))
+    def junction_rows(self, half_height_px: int) -> int:
+        """Rows left out next to a junction of two segments, for a template half height (px)."""
+        return max(self.trim_rows, int(math.ceil(self.junction_template * half_height_px)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -790,9 +796,10 @@ def identify(
         raise IdentificationError(
             f"params.follow_stripe must be 'line' or 'off', got {p.follow_stripe!r}"
         )
-    if not p.junction_samples >= 0:  # also catches NaN
+    if not p.junction_template >= 0:  # also catches NaN
         raise IdentificationError(
-            f"params.junction_samples must be >= 0 (sample steps), got {p.junction_samples}"
+            "params.junction_template must be >= 0 (a fraction of the template's half height), "
+            f"got {p.junction_template}"
         )
     if not p.depth_margin >= 0:  # also catches NaN
         raise IdentificationError(
@@ -915,7 +922,7 @@ def identify(
     # the rows at a segment's ends are where it meets another surface or slit: the centre there
     # mixes two stripes, so they are not vouched for
     if p.trim_rows > 0 and has.any():
-        has &= ~_near_segment_ends(ex.u, ex.v, seg, lut_k, p.trim_rows, p.junction_rows(step))
+        has &= ~_near_segment_ends(ex.u, ex.v, seg, lut_k, p.trim_rows, p.junction_rows(hh))
     slit[has] = lut_k[seg[has]]
     conf[has] = lut_c[seg[has]]
     # left-to-right order: drop the less confident of each out-of-order pair

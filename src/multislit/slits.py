@@ -70,7 +70,8 @@ class Separation:
     Attributes
     ----------
     highpass : image minus its row-wise running median, clipped at 0: stripes + dots (c)
-    slits : opening of ``highpass`` with a vertical line: the stripes only (d)
+    slits : ``highpass`` with the dots found by a vertical opening refilled along the stripe:
+        the stripes only (d)
     dots : ``highpass - slits``: the dots only (e), >= 0
     saturated : (H, W) bool, pixels of saturated stripes (image >= saturation level, in vertical
         runs at least as long as the opening line); all False for float images
@@ -631,10 +632,11 @@ def separate(
         ds = estimate_dot_size(hp0) or sw
     hp, slits, sat, _ = _separate(img, sw, ds, saturation_level)
     hpf = hp.astype(np.float32)
+    sf = slits.astype(np.float32)
     return Separation(
         highpass=hpf,
-        slits=slits.astype(np.float32),
-        dots=hpf - slits.astype(np.float32),
+        slits=sf,
+        dots=hpf - sf,
         saturated=sat,
         stripe_width_px=sw,
         dot_size_px=ds,
