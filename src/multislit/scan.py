@@ -66,10 +66,11 @@ class ScanParams:
 
 
 #: Scan parameters for hole measurement (:func:`measure_holes_in_scan` on a fresh scan): the
-#: extraction's centres, not the refined ones. Measured with the demo (full size, 49 slits, seed 0), errors of
-#: D1 / D2 / D3 in mm: extraction's centres flat +0.02 / +0.04 / -0.10, tilted +0.07 / +0.10 /
-#: -0.05 (per-edge radial SD 0.127 mm); refined centres flat +0.13 / +0.06 / +0.08, tilted
-#: +0.09 / +0.21 / -0.03 (per-edge SD 0.336 mm, cause not found yet; open in issue 5).
+#: extraction's centres, not the refined ones. Measured with the demo (full size, 49 slits,
+#: seed 0), errors of D1 / D2 / D3 in mm: extraction's centres flat +0.02 / +0.04 / -0.09,
+#: tilted +0.07 / +0.10 / -0.05 (per-edge radial SD 0.127 mm); refined centres (measured with
+#: the junction trim of before, 1.5 sample steps) flat +0.13 / +0.06 / +0.08, tilted +0.09 /
+#: +0.21 / -0.03 (per-edge SD 0.336 mm, cause not found yet; open in issue 5).
 HOLE_SCAN_PARAMS = ScanParams(refine_centres=False)
 
 
