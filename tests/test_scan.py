@@ -206,7 +206,7 @@ def test_stripe_line_from_calibration_follows_the_stripe(cap_dir, scans, truth):
     # the hole-edge profile runs along the calibration's stripe line on the plate; on the plane
     # scan that line must lie on the measured stripe centres (half size; measured median
     # |du| 0.012-0.090 px per slit)
-    from multislit.scan import _stripe_line_in_image
+    from multislit.scan import _line_of_planes, _stripe_line_in_image
 
     cal = load_capture_calibration(Capture.open(cap_dir))
     r = scans["plane"]
@@ -215,7 +215,8 @@ def test_stripe_line_from_calibration_follows_the_stripe(cap_dir, scans, truth):
     for k in np.unique(r.slit)[::4]:
         m = np.flatnonzero(r.slit == k)
         s = m[len(m) // 2]
-        uu, vv = _stripe_line_in_image(cal, cal.slit_planes.planes[k], pl, r.points[s])
+        line = _line_of_planes(cal.slit_planes.planes[k], pl)
+        uu, vv = _stripe_line_in_image(cal, line, r.points[s])
         b, a = np.polyfit(vv, uu, 1)
         near = m[np.abs(r.v[m] - r.v[s]) <= 10]
         meds.append(np.median(np.abs(a + b * r.v[near] - r.u[near])))

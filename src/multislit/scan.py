@@ -493,11 +493,12 @@ def _line_of_planes(p1: F64, p2: F64) -> tuple[F64, F64]:
 
 
 def _stripe_line_in_image(
-    calibration: Calibration, slit_plane: F64, plane: F64, near: F64, half_mm: float = 15.0
+    calibration: Calibration, line: tuple[F64, F64], near: F64, half_mm: float = 15.0
 ) -> tuple[F64, F64]:
-    """Where the calibration puts slit ``slit_plane``'s stripe on the plate ``plane`` in the
-    image, around the 3D point ``near``: 7 points (u, v) px of the line where the two planes
-    meet, +-``half_mm`` along it, projected by the camera (with its distortion).
+    """Where the calibration puts a slit's stripe on the plate in the image, around the 3D
+    point ``near``: 7 points (u, v) px of ``line`` (point, unit direction: the slit plane x
+    the plate plane, :func:`_line_of_planes`), +-``half_mm`` along it, projected by the camera
+    (with its distortion).
 
     The hole-edge profile is taken along this line rather than along a line fitted to the
     stripe's last centres: where a rim cuts the stripe obliquely, those centres lean towards
@@ -505,7 +506,7 @@ def _stripe_line_in_image(
     late. Measured on the demo capture (88 edges, flat and tilted plates, extraction's
     centres): per-edge radial error SD 0.181 -> 0.127 mm, edges off by more than 0.3 mm 10 -> 3.
     """
-    x0, e = _line_of_planes(slit_plane, plane)
+    x0, e = line
     t0 = float((np.asarray(near, float) - x0) @ e)
     q = x0 + (t0 + np.linspace(-half_mm, half_mm, 7))[:, None] * e
     uv = calibration.camera.project(q)
@@ -683,31 +684,25 @@ def measure_holes_in_scan(
         assert calibration is not None and calibration.slit_planes is not None
         calibration.check_image_size((img.shape[1], img.shape[0]))
         planes = calibration.slit_planes.planes
-        on = np.abs(dist) <= 5.0 * max(plane_rms, 0.05)
+        # the line where each edge's slit plane meets the plate: the profile runs along its
+        # image and the edge's 3D point lies on it; an edge whose slit has no plane is rejected
+        valid = np.all(np.isfinite(planes[e.slit]), axis=1)
+        lines = {int(k): _line_of_planes(planes[k], pl) for k in np.unique(e.slit[valid])}
         uv = np.full((len(e), 2), np.nan)
-        for i in range(len(e)):  # per edge: a short image profile
+        for i in np.flatnonzero(valid):  # per edge: a short image profile
             s = int(e.source[i])
-            k = int(result.slit[s])
+            uu, vv = _stripe_line_in_image(calibration, lines[int(e.slit[i])], result.points[s])
             direction = -int(e.side[i])  # side -1: the stripe ends at larger v
-            v0 = result.v[s]
-            near = (result.slit == k) & on & ((v0 - result.v) * direction >= 0)
-            near &= np.abs(result.v - v0) <= 10.0
-            near[s] = True
-            uu, vv = result.u[near], result.v[near]
-            if np.all(np.isfinite(planes[k])):
-                uu, vv = _stripe_line_in_image(calibration, planes[k], pl, result.points[s])
-            loc = locate_edge_subpixel(img, uu, vv, float(v0), direction, search_px)
+            loc = locate_edge_subpixel(img, uu, vv, float(result.v[s]), direction, search_px)
             if loc is not None:
                 uv[i] = loc
         ok = np.all(np.isfinite(uv), axis=1)
-        ok &= np.all(np.isfinite(planes[e.slit]), axis=1)
         rejected = int(np.count_nonzero(~ok))
         pts = np.full((len(e), 3), np.nan)
         if ok.any():
             o, d = calibration.camera.rays(uv[ok])
-            lines = [_line_of_planes(planes[k], pl) for k in e.slit[ok]]
-            x0 = np.array([ln[0] for ln in lines])
-            ed = np.array([ln[1] for ln in lines])
+            x0 = np.array([lines[int(k)][0] for k in e.slit[ok]])
+            ed = np.array([lines[int(k)][1] for k in e.slit[ok]])
             pts[ok] = _closest_on_lines(x0, ed, o, d)
         edges = HoleEdges(pts[ok], uv[ok], e.slit[ok], e.gap[ok], e.side[ok])
     else:
