@@ -16,6 +16,7 @@ from multislit.errors import IdentificationError
 from multislit.identify import (
     IdentifyParams,
     _between_agreeing,
+    _confirm_by_neighbours,
     _fill_by_order,
     _near_segment_ends,
     _order_labels,
@@ -403,41 +404,42 @@ def test_order_fill_rules():
     # stripes of slits 10..15; the dots identified 10, 11, 12 and 14; 13 and 15 are free
     u, v, seg, slit = _rows_of_stripes([10, 11, 12, -1, 14, -1])
     conf = np.where(slit >= 0, 1.0, 0.0)
-    between, run_label = _order_labels(u, v, seg, slit, conf, 30)
-    assert set(between[seg == 3]) == {13}  # between 12 and 14
-    assert set(between[seg == 5]) == {-1}  # beyond the last dot-identified stripe
-    assert set(run_label[seg == 5]) == {15}
+    order = _order_labels(u, v, seg, slit, conf, 30)
+    assert set(order.between[seg == 3]) == {13}  # between 12 and 14
+    assert set(order.inside[seg == 3]) == {13} and set(order.inside[seg == 4]) == {14}
+    assert set(order.between[seg == 5]) == {-1}  # beyond the last dot-identified stripe
+    assert set(order.inside[seg == 5]) == {-1}
+    assert set(order.extended[seg == 5]) == {15}
     usable = np.ones(len(u), bool)
     # rule 1: order alone between agreeing stripes, never certain
-    got = _fill_by_order(seg, slit, usable, between, run_label, 30)
+    got = _fill_by_order(seg, slit, usable, order, 30)
     assert got == {3: (13, pytest.approx(0.6))}
     # rule 2: a weak dot vote that the (extrapolated) order confirms
     mean = np.full(30, 0.1)
     mean[15] = 0.3
     p = IdentifyParams()
-    got = _fill_by_order(seg, slit, usable, between, run_label, 30, {5: (15, 0.1, mean)}, p)
+    got = _fill_by_order(seg, slit, usable, order, 30, {5: (15, 0.1, mean)}, p)
     assert got[5] == (15, pytest.approx(0.6))
     # ... not when the dots' confidence is below min_confirm, nor when they say another slit
     for k, c in ((15, 0.01), (16, 0.1)):
         m = np.full(30, 0.1)
         m[k] = 0.3
-        got = _fill_by_order(seg, slit, usable, between, run_label, 30, {5: (k, c, m)}, p)
+        got = _fill_by_order(seg, slit, usable, order, 30, {5: (k, c, m)}, p)
         assert 5 not in got or got[5][1] < 0.5
     # rule 3: extrapolated order where the dots do not contradict it (top 5, score >= 0.15)
     m = np.full(30, 0.0)
     m[[3, 4, 5, 6]] = 0.4
     m[15] = 0.2
-    got = _fill_by_order(seg, slit, usable, between, run_label, 30, {5: (-1, 0.0, m)}, p)
+    got = _fill_by_order(seg, slit, usable, order, 30, {5: (-1, 0.0, m)}, p)
     assert got[5] == (15, pytest.approx(0.4))
     m[[7, 8]] = 0.4  # now six slits score better: the dots contradict it
-    got = _fill_by_order(seg, slit, usable, between, run_label, 30, {5: (-1, 0.0, m)}, p)
+    got = _fill_by_order(seg, slit, usable, order, 30, {5: (-1, 0.0, m)}, p)
     assert 5 not in got
     got = _fill_by_order(
         seg,
         slit,
         usable,
-        between,
-        run_label,
+        order,
         30,
         {5: (-1, 0.0, m)},
         IdentifyParams(extrapolate_top=0),
@@ -458,3 +460,20 @@ def test_segment_end_rows_come_back_where_the_order_agrees(scenes_capture, scene
     }
     assert got[True]["coverage"] >= got[False]["coverage"] + 0.002
     assert got[True]["correct"] >= 0.995
+
+
+def test_weak_votes_confirmed_by_neighbours():
+    # five stripes side by side; the dots named 20 (identified), then weakly 21, 22, 30 and 24
+    u, v, seg, slit = _rows_of_stripes([20, -1, -1, -1, -1])
+    weak = np.array([-1, 21, 22, 30, 24])
+    order = _order_labels(u, v, seg, slit, np.where(slit >= 0, 1.0, 0.0), 49)
+    usable = np.ones(len(u), bool)
+    got = _confirm_by_neighbours(order, seg, slit, weak, usable, 0.5)
+    # 21 and 22 follow 20 in order; 30 has no consecutive neighbour; 24 neither (23 is missing)
+    assert got == {1: 21, 2: 22}
+    # a stripe missing between them (a gap wider than 1.6 spacings) cuts the run: no support
+    u2 = np.where(seg >= 2, u + 15.0, u)
+    order = _order_labels(u2, v, seg, slit, np.where(slit >= 0, 1.0, 0.0), 49)
+    assert _confirm_by_neighbours(order, seg, slit, weak, usable, 0.5) == {1: 21}
+    # too few usable points: nothing
+    assert _confirm_by_neighbours(order, seg, slit, weak, v < 4, 0.5) == {}

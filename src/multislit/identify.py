@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -62,55 +63,25 @@ class IdentifyParams:
         last dot-identified stripe only if that slit is among the dots' ``extrapolate_top``
         best for it with a mean score >= ``min_score`` (0: never). Measured as above: 49-slit
         free-form coverage 83.9 -> 86.9 %, spheres 88.4 -> 88.7 %, every correct share within
-        0.03 points; without
-        the dots' check the 49-slit spheres' correct share fell from 99.55 to 99.33 %
-        (extrapolation across an occlusion, labels 11-13 slits off)
+        0.03 points; without the dots' check the 49-slit spheres' correct share fell from
+        99.55 to 99.33 % (extrapolation across an occlusion, labels 11-13 slits off)
     end_order : rows left out at a segment's ends (``trim_rows``, ``junction_template``) or
         far from its samples are labelled after all where their place in the row gives the
         segment's slit (the order label between agreeing dot-identified stripes). Measured as
         above: coverage +0.4..+3.4 points at 25 and 49 slits (49-slit spheres 85.8 -> 88.4 %),
         confidently wrong points +0.01 points at most
-    order_check : a point whose run label (its place in its row, from the dot-identified
-        stripes of the run, also beyond the last of them) is another slit than its own label is
-        left out. Measured as above, 49 slits: free-form correct 99.50 -> 99.87 %, confidently
-        wrong 0.24 -> 0.05 %, coverage unchanged; spheres 99.55 -> 99.70 %, 0.09 -> 0.06 %,
-        coverage 88.7 -> 88.0 %; at 25 slits coverage -0.4 points at most. Only the labels
-        the order fill gave (instead of all) or only labels with confidence < 0.9 removed
-        fewer of the wrong points
-    trim_rows : rows at each end of a segment left unidentified (junctions of two stripes)
-    junction_template : at an end where the segment meets the end of a segment identified as
-        another slit (a stripe running into another slit's stripe at an occlusion edge), the
-        rows within this fraction of the template's half height (at least ``trim_rows``) are
-        left unidentified: a sample whose template straddles the junction votes for the side
-        with more dot contrast, so the split there is only as exact as the template is tall.
-        Measured with benchmarks/bench_identify.py (half size, seed 11) against the earlier
-        rule of 1.5 sample steps (8 rows at 25 slits, 4 at 49): 0.4 (11 and 14 rows) took the
-        49-slit steps scene's confidently wrong points from 0.25 to 0.07 % and the spheres'
-        correct share from 99.44 to 99.54 %, for 0.2-1.5 points of coverage at 49 slits and
-        0.1 at 25 (steps). 5 sample steps instead (26 rows at 25 slits) did as well at 49 slits
-        but cost a plate tilted 25 deg 6.5 points of coverage at 25 slits
-    references : "nearest" (compare each hypothesis in the reference whose board lies nearest
-        the surface) or "all" (best over all references; slower)
-    sample_step : distance between sample points along a segment (x spacing)
-    search_px : search +- this many px along the epipolar line around each intersection
-        (absorbs a dot projector that is not exactly on the slits' common axis)
-    depth_margin : the measuring volume: slit k is a hypothesis for a point only if the point
-        lies, in its row, within the band slit k sweeps over the reference boards, widened on
-        each side by this fraction of the band's width (columns are ~linear in inverse depth, so
-        1.0 with boards at 780-1020 mm admits ~630-1480 mm). A point beyond it is not guessed
-        at. Default inf (off): on the half-size scenes 1.0 removed a segment numbered 15 slits
-        off (680 mm from the surface) that a steger-centred extraction produced, but lowered
-        the free-form scene's correct share from 99.54 to 99.37 %
-    follow_stripe : how the scan template follows its stripe: "line" (default: a line fitted
-        to the segment's centres over the template's rows; each template row is shifted sideways
-        so that the stripe in it has the slant of the reference curves around the point) or
-        "off" (an upright window). On a slanted surface the stripe leans away from the
-        reference's near-vertical one and an upright window shears the dots against the
-        reference patch. Measured with benchmarks/bench_identify.py (half size, seed 11):
-        coverage 76.3 -> 80.1 % on the free-form scene (25 slits), 68.4 -> 72.5 % (49 slits);
-        a plate tilted 25 deg about the horizontal axis 61.6 -> 90.8 % with 97.6 -> 99.5 %
-        correct. A parabola instead of the line gained < 1 point and lost correctness on the
-        49-slit spheres (98.5 -> 98.1 %)
+    neighbour_share : a segment the dots were too unsure of (dropped for low confidence) takes
+        their best slit where its neighbours in the rows confirm it on >= this share of its
+        points (:func:`_confirm_by_neighbours`; > 1: never). Measured as above: 49-slit
+        spheres coverage 88.0 -> 90.0 %, free-form 86.9 -> 87.3 %, correct shares unchanged
+        (within 0.01 points); 0.8 instead of 0.5 gained 0.2 points less
+    order_check : a point whose run label within the span of the run's dot-identified stripes
+        (its place in its row) is another slit than its own label is left out. Measured as
+        above, 49 slits: free-form correct 99.51 -> 99.87 %, confidently wrong 0.24 -> 0.05 %,
+        coverage unchanged; spheres 99.56 -> 99.71 %, 0.09 -> 0.06 %, coverage 90.9 -> 90.0 %;
+        at 25 slits coverage -0.5 points at most. Using the run label also beyond the span
+        removed no more wrong points and cost the 49-slit spheres 2 points of coverage; only
+        the order fill's labels, or only labels with confidence < 0.9, removed fewer wrong ones
     min_score : a segment's best mean NCC must reach this
     min_confidence : segments below this confidence are dropped
     min_samples : segments with fewer sample points are dropped (too short to vote). 3, not
@@ -138,6 +109,7 @@ class IdentifyParams:
     min_confirm: float = 0.05
     confirm_share: float = 0.8
     extrapolate_top: int = 5
+    neighbour_share: float = 0.5
     end_order: bool = True
     order_check: bool = True
     chunk: int = 400
@@ -742,9 +714,25 @@ def _between_agreeing(
     return out
 
 
-def _order_labels(
-    u: F64, v: F64, seg: I64, slit: I64, conf: F64, num_slits: int
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+class _RowOrder(NamedTuple):
+    """Order labels of every point (:func:`_order_labels`); -1 where the order says nothing.
+
+    run, rank : (K,) the point's row-run and its rank in it (-1: in no run)
+    extended : (K,) run label wherever the run has an agreed offset (also beyond the run's
+        first or last dot-identified stripe)
+    inside : (K,) run label from the run's first to its last dot-identified stripe
+    between : (K,) run label strictly between the run's first and last dot-identified
+        stripes, where the nearest ones on either side agree with it (:func:`_between_agreeing`)
+    """
+
+    run: NDArray[np.intp]
+    rank: NDArray[np.intp]
+    extended: NDArray[np.intp]
+    inside: NDArray[np.intp]
+    between: NDArray[np.intp]
+
+
+def _order_labels(u: F64, v: F64, seg: I64, slit: I64, conf: F64, num_slits: int) -> _RowOrder:
     """Per point, the slit its place in its row implies (-1 where the order says nothing).
 
     Along a row, stripes closer than ~1.6 local spacings belong to consecutive slits (a larger
@@ -754,18 +742,15 @@ def _order_labels(
 
     Returns
     -------
-    between : (K,) run label, only between dot-identified stripes of the run (no extrapolation)
-        whose nearest ones on either side agree with the label (:func:`_between_agreeing`)
-    run_label : (K,) run label wherever the run has an agreed offset (also beyond the run's
-        last dot-identified stripe)
+    :class:`_RowOrder`
     """
-    none = np.full(len(u), -1, np.intp)
     op = OrderParams()
     ok = seg >= 0
     run, rank = _runs(u, v, ok, op)
     n_runs = int(run.max()) + 1 if (run >= 0).any() else 0
     if n_runs == 0:
-        return none, none
+        none = np.full(len(u), -1, np.intp)
+        return _RowOrder(run, rank, none, none, none)
     vote = np.where(slit >= 0, slit, -1).astype(np.intp)
     offset = _run_offsets(run, rank, vote, np.where(slit >= 0, conf, 0.0), n_runs, op)
     # an offset must be confirmed by the dots of >= 2 different stripes (segments) of the run
@@ -781,33 +766,33 @@ def _order_labels(
     hi = np.full(n_runs, -1, np.intp)
     np.minimum.at(lo, run[voted], rank[voted])
     np.maximum.at(hi, run[voted], rank[voted])
-    inside = (run >= 0) & (rank > lo[np.maximum(run, 0)]) & (rank < hi[np.maximum(run, 0)])
-    lab = np.where(inside, run_label, -1)
-    lab = np.where(_between_agreeing(run, rank, vote, voted, lab), lab, -1)
-    return lab, run_label
+    r = np.maximum(run, 0)
+    span_ = (run >= 0) & (rank >= lo[r]) & (rank <= hi[r])
+    lab = np.where(span_ & (rank > lo[r]) & (rank < hi[r]), run_label, -1)
+    between = np.where(_between_agreeing(run, rank, vote, voted, lab), lab, -1)
+    return _RowOrder(run, rank, run_label, np.where(span_, run_label, -1), between)
 
 
 def _fill_by_order(
     seg: I64,
     slit: I64,
     usable: NDArray[np.bool_],
-    between: NDArray[np.intp],
-    run_label: NDArray[np.intp],
+    order: _RowOrder,
     num_slits: int,
     dots: dict[int, tuple[int, float, F64]] | None = None,
     p: IdentifyParams | None = None,
 ) -> dict[int, tuple[int, float]]:
     """Slit numbers for segments the dots left unidentified, from the order along the rows.
 
-    ``between`` and ``run_label`` are the order labels of :func:`_order_labels`; ``dots`` holds,
+    ``order`` holds the order labels (:func:`_order_labels`); ``dots`` holds,
     per segment the dots left unidentified, their vote: (best slit, confidence, (N,) mean score
     per slit). A free segment takes, by the first rule that holds:
 
-    1. the ``between`` label, if it covers >= 50 % (>= 5) of the segment's points and >= 95 %
+    1. the ``order.between`` label, if it covers >= 50 % (>= 5) of the segment's points and >= 95 %
        of those agree; confidence 0.6 x agreement (order-inferred labels never count as
        certain);
     2. the dots' best slit, if their confidence reaches ``p.min_confirm`` and the run label
-       (here also beyond the run's last dot-identified stripe) covers >= 30 % (>= 5) of the
+       (``order.extended``, also beyond the run's last dot-identified stripe) covers >= 30 % (>= 5) of the
        points and >= ``p.confirm_share`` of those agree with it: two independent sources
        agreeing on one of N slits; confidence 0.6 x agreement;
     3. the run label, if it covers >= 50 % (>= 5) of the points, >= 95 % of those agree, and
@@ -840,8 +825,8 @@ def _fill_by_order(
         best_cnt[ks[first]] = cnt[first]
         return best, best_cnt, n_lab
 
-    b_lab, b_cnt, b_n = majority(between)
-    r_lab, r_cnt, r_n = majority(run_label)
+    b_lab, b_cnt, b_n = majority(order.between)
+    r_lab, r_cnt, r_n = majority(order.extended)
     for sid in free:
         nb, nr = b_n[sid], r_n[sid]
         if nb >= 5 and nb >= 0.5 * n_pts[sid] and b_cnt[sid] >= 0.95 * nb:
@@ -850,7 +835,7 @@ def _fill_by_order(
         if int(sid) not in dots or nr < 5:
             continue
         k, c, mean = dots[int(sid)]
-        lr = run_label[ok & (seg == sid)]
+        lr = order.extended[ok & (seg == sid)]
         agree = float(np.mean(lr[lr >= 0] == k)) if k >= 0 else 0.0
         if c >= p.min_confirm and nr >= 0.3 * n_pts[sid] and agree >= p.confirm_share:
             out[int(sid)] = (int(k), 0.6 * agree)
@@ -859,6 +844,50 @@ def _fill_by_order(
         if nr >= 0.5 * n_pts[sid] and r_cnt[sid] >= 0.95 * nr and mean[kr] >= p.min_score:
             if np.sum(mean > mean[kr]) < p.extrapolate_top:
                 out[int(sid)] = (kr, float(0.4 * r_cnt[sid] / nr))
+    return out
+
+
+def _confirm_by_neighbours(
+    order: _RowOrder,
+    seg: I64,
+    slit: I64,
+    weak: I64,
+    usable: NDArray[np.bool_],
+    min_share: float,
+) -> dict[int, int]:
+    """Weak dot votes that their neighbours in the rows confirm.
+
+    ``weak`` (S,) is, per segment, the dots' best slit where they were too unsure to label it
+    (-1 elsewhere). A point is supported where the next stripe to its left in its row-run
+    (another segment) carries its slit - 1, or the next one to its right its slit + 1, counting
+    labels and weak votes alike. A segment whose weak vote is supported on >= ``min_share`` of
+    its usable points (>= 5) takes it: two neighbouring stripes whose dots each point to
+    consecutive slits (on the half-size 49-slit spheres, 5 stripes side by side with dot
+    confidence 0.02-0.26 each named its true slit).
+
+    Returns
+    -------
+    dict segment -> slit, for the segments confirmed
+    """
+    lab = np.where(slit >= 0, slit, np.where(seg >= 0, weak[np.maximum(seg, 0)], -1))
+    o = np.lexsort((order.rank, order.run))
+    o = o[order.run[o] >= 0]
+    nxt = (order.run[o][1:] == order.run[o][:-1]) & (order.rank[o][1:] == order.rank[o][:-1] + 1)
+    a, b = o[:-1][nxt], o[1:][nxt]
+    pair = (lab[a] >= 0) & (lab[b] == lab[a] + 1) & (seg[a] != seg[b])
+    support = np.zeros(len(seg), bool)
+    support[a[pair]] = True
+    support[b[pair]] = True
+    out: dict[int, int] = {}
+    m = usable & (seg >= 0)
+    m &= weak[np.maximum(seg, 0)] >= 0
+    m &= slit < 0
+    if not m.any():
+        return out
+    n = np.bincount(seg[m], minlength=len(weak))
+    n_sup = np.bincount(seg[m], weights=support[m], minlength=len(weak))
+    for sid in np.flatnonzero((n >= 5) & (n_sup >= min_share * np.maximum(n, 1))):
+        out[int(sid)] = int(weak[sid])
     return out
 
 
@@ -1037,24 +1066,32 @@ def identify(
         slit[has] = lut_k[seg[has]]
         conf[has] = lut_c[seg[has]]
     if p.order_fill:
-        between, run_label = _order_labels(ex.u, ex.v, seg, slit, conf, reference.num_slits)
-        filled = _fill_by_order(
-            seg, slit, has, between, run_label, reference.num_slits, dot_votes, p
-        )
+        order = _order_labels(ex.u, ex.v, seg, slit, conf, reference.num_slits)
+        filled = _fill_by_order(seg, slit, has, order, reference.num_slits, dot_votes, p)
         for sid, (k, c) in filled.items():
             lut_k[sid], lut_c[sid] = k, c
+        if p.neighbour_share <= 1:
+            weak = np.full(len(lut_k), -1, np.int64)
+            for sid, (k, _, _) in dot_votes.items():
+                if lut_k[sid] < 0:
+                    weak[sid] = k
+            slit[has] = lut_k[seg[has]]
+            agreed = _confirm_by_neighbours(order, seg, slit, weak, has, p.neighbour_share)
+            for sid, k in agreed.items():
+                lut_k[sid], lut_c[sid] = k, 0.4
         slit[has] = lut_k[seg[has]]
         conf[has] = lut_c[seg[has]]
         if p.end_order:
             # rows left out at a segment's ends (or far from its samples) come back where
             # their place in the row says the segment's slit too
-            back = (seg >= 0) & ~has & (between >= 0)
-            back &= between == lut_k[np.maximum(seg, 0)]
+            back = (seg >= 0) & ~has & (order.between >= 0)
+            back &= order.between == lut_k[np.maximum(seg, 0)]
             slit[back] = lut_k[seg[back]]
             conf[back] = lut_c[seg[back]]
         if p.order_check:
-            # a point whose place in its row gives another slit than its label is left out
-            left_out = (slit >= 0) & (run_label >= 0) & (run_label != slit)
+            # a point whose place in its row, within the span of the run's dot-identified
+            # stripes, gives another slit than its label is left out
+            left_out = (slit >= 0) & (order.inside >= 0) & (order.inside != slit)
             slit[left_out] = -1
     conf[slit < 0] = 0.0
     n_id = int(np.sum(lut_k >= 0))
