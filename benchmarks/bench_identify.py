@@ -4,7 +4,9 @@ For each rig (25 slits; 49 slits with a grating of twice the pitch) and each sce
 output points with the correct slit, the share wrong with confidence >= 0.5, the coverage of
 lit stripe-centre pixels, and the time per frame.
 
-Run:  .venv/bin/python benchmarks/bench_identify.py [--scale 0.5] [--seed 11]
+Run:  .venv/bin/python benchmarks/bench_identify.py [--scale 0.5] [--seed 11] [--losses]
+
+``--losses`` adds, per scene, where the coverage is lost (``sim.evaluate.coverage_losses``).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from multislit.capture import Capture
 from multislit.identify import IdentifyParams, identify
 from multislit.reference import prepare_reference
-from multislit.sim.evaluate import identification_metrics
+from multislit.sim.evaluate import LOSSES, coverage_losses, identification_metrics
 from multislit.sim.rig import RigSpec
 from multislit.sim.simulate import simulate_capture
 
@@ -52,6 +54,9 @@ def main() -> None:
         default=IdentifyParams().depth_margin,
         help="the measuring volume's margin (IdentifyParams.depth_margin; inf: no limit)",
     )
+    ap.add_argument(
+        "--losses", action="store_true", help="also print where the coverage is lost, per scene"
+    )
     args = ap.parse_args()
     params = IdentifyParams(follow_stripe=args.follow_stripe, depth_margin=args.depth_margin)
     print(
@@ -60,6 +65,7 @@ def main() -> None:
     )
     print("| rig | scene | points | correct | wrong, conf >= 0.5 | coverage | ms/frame |")
     print("|---|---|---|---|---|---|---|")
+    losses = []
     with tempfile.TemporaryDirectory() as d:
         for name, spec in rigs(args.scale).items():
             cap = Capture.open(
@@ -71,13 +77,22 @@ def main() -> None:
                 t = time.perf_counter()
                 ident = identify(img, ref, params)
                 dt = time.perf_counter() - t
-                m = identification_metrics(
-                    ident, np.load(cap.root / "truth" / f"{p.stem}.npz")["slit"]
-                )
+                truth = np.load(cap.root / "truth" / f"{p.stem}.npz")["slit"]
+                m = identification_metrics(ident, truth)
+                if args.losses:
+                    losses.append((name, p.stem, coverage_losses(ident, truth)))
                 print(
                     f"| {name} | {p.stem} | {m['points']} | {100 * m['correct']:.2f} % | "
                     f"{100 * m['wrong_confident']:.2f} % | {100 * m['coverage']:.1f} % | {1e3 * dt:.0f} |"
                 )
+
+    if losses:
+        print("\nshare of the lit stripe-centre pixels (%)")
+        print("| rig | scene | " + " | ".join(LOSSES) + " |")
+        print("|---|---|" + "---|" * len(LOSSES))
+        for name, scene, loss in losses:
+            cells = " | ".join(f"{100 * loss[k]:.1f}" for k in LOSSES)
+            print(f"| {name} | {scene} | {cells} |")
 
 
 if __name__ == "__main__":

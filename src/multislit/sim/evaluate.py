@@ -6,6 +6,23 @@ import numpy as np
 from numpy.typing import NDArray
 
 
+def _true_centres(truth_slit: NDArray) -> list[tuple[int, float, int]]:
+    """(row, column, slit) of every true stripe-centre pixel: the middle of each run (>= 2 px)
+    of one slit label along a row."""
+    h = truth_slit.shape[0]
+    pad = np.full((h, 1), -1, truth_slit.dtype)
+    t = np.hstack([pad, truth_slit, pad])
+    rows, cols = np.nonzero(np.diff(t, axis=1) != 0)
+    centres = []
+    for row in np.unique(rows):
+        b = cols[rows == row]
+        for a, e in zip(b[:-1], b[1:], strict=True):
+            lab = truth_slit[row, a]
+            if lab >= 0 and e - a >= 2:
+                centres.append((int(row), (a + e - 1) / 2, int(lab)))
+    return centres
+
+
 def identification_metrics(ident, truth_slit: NDArray) -> dict:
     """Score an identification against the simulator's per-pixel truth.
 
@@ -25,18 +42,7 @@ def identification_metrics(ident, truth_slit: NDArray) -> dict:
     correct = (cand == k[:, None]).any(1)
     wrong = ~correct & (cand >= 0).any(1)
     hi = ident.confidence[ok] >= 0.5
-    # true stripe-centre pixels: middle of each run of one slit label along a row
-    pad = np.full((h, 1), -1, truth_slit.dtype)
-    t = np.hstack([pad, truth_slit, pad])
-    change = np.diff(t, axis=1) != 0
-    rows, cols = np.nonzero(change)
-    centres = []
-    for row in np.unique(rows):
-        b = cols[rows == row]
-        for a, e in zip(b[:-1], b[1:], strict=True):
-            lab = truth_slit[row, a]
-            if lab >= 0 and e - a >= 2:
-                centres.append((row, (a + e - 1) / 2, lab))
+    centres = _true_centres(truth_slit)
     got = 0
     pts: dict = {}
     for uu, vv, kk in zip(u, np.round(v).astype(int), k, strict=True):
@@ -51,3 +57,54 @@ def identification_metrics(ident, truth_slit: NDArray) -> dict:
         "wrong_confident": float((wrong & hi).sum() / n),
         "coverage": got / max(len(centres), 1),
     }
+
+
+#: Why a true stripe-centre pixel has no point of its slit (:func:`coverage_losses`).
+LOSSES = ("covered", "no_centre", "unlinked", "segment_unidentified", "point_left_out", "wrong")
+
+
+def coverage_losses(ident, truth_slit: NDArray) -> dict[str, float]:
+    """Where the coverage of :func:`identification_metrics` is lost.
+
+    Each true stripe-centre pixel is put in one class, by the output point nearest it in its
+    row (within 1.5 px): ``covered`` (a point of its slit), ``no_centre`` (no point at all),
+    ``unlinked`` (a centre in no segment), ``segment_unidentified`` (no point of its segment
+    was identified), ``point_left_out`` (its segment was identified, this point not: the rows
+    at a segment's ends, or the order check) or ``wrong`` (another slit).
+
+    Returns
+    -------
+    dict class -> share of the true stripe-centre pixels (they sum to 1)
+    """
+    h = truth_slit.shape[0]
+    seg = ident.segment
+    seg_id = np.zeros(int(seg.max()) + 2 if len(seg) else 1, bool)
+    seg_id[seg[(ident.slit >= 0) & (seg >= 0)]] = True
+    rows = np.clip(np.round(ident.v).astype(int), 0, h - 1)
+    by_row: dict[int, NDArray] = {}
+    order = np.argsort(rows, kind="stable")
+    starts = np.flatnonzero(np.r_[True, rows[order][1:] != rows[order][:-1]])
+    for a, e in zip(starts, np.r_[starts[1:], len(order)], strict=True):
+        by_row[int(rows[order][a])] = order[a:e]
+    count = dict.fromkeys(LOSSES, 0)
+    centres = _true_centres(truth_slit)
+    for row, c, lab in centres:
+        idx = by_row.get(row, np.zeros(0, int))
+        idx = idx[np.abs(ident.u[idx] - c) <= 1.5]
+        if idx.size == 0:
+            count["no_centre"] += 1
+            continue
+        if np.any(ident.slit[idx] == lab):
+            count["covered"] += 1
+            continue
+        i = idx[np.argmin(np.abs(ident.u[idx] - c))]
+        if ident.slit[i] >= 0:
+            count["wrong"] += 1
+        elif seg[i] < 0:
+            count["unlinked"] += 1
+        elif seg_id[seg[i]]:
+            count["point_left_out"] += 1
+        else:
+            count["segment_unidentified"] += 1
+    n = max(len(centres), 1)
+    return {k: v / n for k, v in count.items()}
