@@ -71,7 +71,13 @@ class ScanParams:
 #: tilted +0.07 / +0.10 / -0.05 (per-edge radial SD 0.127 mm); refined centres (measured with
 #: the junction trim of before, 1.5 sample steps) flat +0.13 / +0.06 / +0.08, tilted +0.09 /
 #: +0.21 / -0.03 (per-edge SD 0.336 mm, cause not found yet; open in issue 5).
-HOLE_SCAN_PARAMS = ScanParams(refine_centres=False)
+#: The rows at segment ends that the identification restores where the row order agrees
+#: (``IdentifyParams.end_order``) are left out (demo: flat +0.00 / +0.04 / -0.09, tilted
+#: +0.08 / +0.10 / -0.05 mm, measured after the session-5 order rules); with them flat +0.01 /
+#: +0.03 / -0.09, tilted +0.07 / +0.16 / -0.03 mm. The per-edge radial error is the same
+#: (SD 0.124 vs 0.126 mm over 90 edges), but the tilted plate's 50 mm hole keeps edges over
+#: 198 instead of 305 degrees of its rim (extra edges from the restored rows on two slits).
+HOLE_SCAN_PARAMS = ScanParams(refine_centres=False, identify=IdentifyParams(end_order=False))
 
 
 @dataclass(frozen=True, eq=False)
