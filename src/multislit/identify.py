@@ -827,6 +827,12 @@ def _fill_by_order(
 
     b_lab, b_cnt, b_n = majority(order.between)
     r_lab, r_cnt, r_n = majority(order.extended)
+    # per segment: how many of its run labels name the dots' best slit (rule 2)
+    dot_k = np.full(span, -1, np.int64)
+    for sid, (k, _, _) in dots.items():
+        dot_k[sid] = k
+    named = ok & (order.extended >= 0) & (order.extended == dot_k[np.maximum(seg, 0)])
+    n_named = np.bincount(seg[named], minlength=span)
     for sid in free:
         nb, nr = b_n[sid], r_n[sid]
         if nb >= 5 and nb >= 0.5 * n_pts[sid] and b_cnt[sid] >= 0.95 * nb:
@@ -835,9 +841,8 @@ def _fill_by_order(
         if int(sid) not in dots or nr < 5:
             continue
         k, c, mean = dots[int(sid)]
-        lr = order.extended[ok & (seg == sid)]
-        agree = float(np.mean(lr[lr >= 0] == k)) if k >= 0 else 0.0
-        if c >= p.min_confirm and nr >= 0.3 * n_pts[sid] and agree >= p.confirm_share:
+        agree = float(n_named[sid] / nr)
+        if k >= 0 and c >= p.min_confirm and nr >= 0.3 * n_pts[sid] and agree >= p.confirm_share:
             out[int(sid)] = (int(k), 0.6 * agree)
             continue
         kr = int(r_lab[sid])
@@ -1012,7 +1017,7 @@ def identify(
     dot_votes: dict[int, tuple[int, float, F64]] = {}  # of the segments dropped
     for sid in np.unique(seg[seg >= 0]):
         k, c, m1, n = votes.get(int(sid), (-1, 0.0, np.nan, 0))
-        weak = False
+        low_confidence = False
         if n < p.min_samples:
             dropped["too_short" if n > 0 or int(sid) not in votes else "no_candidate"] += 1
         elif k < 0:
@@ -1021,13 +1026,13 @@ def identify(
             dropped["weak_match"] += 1
         elif c < p.min_confidence:
             dropped["low_confidence"] += 1
-            weak = True
+            low_confidence = True
         else:
             accepted[int(sid)] = (k, c)
             continue
         if int(sid) in means:
             # not enough alone; the order along the rows may confirm it (_fill_by_order)
-            dot_votes[int(sid)] = (k if weak else -1, c, means[int(sid)])
+            dot_votes[int(sid)] = (k if low_confidence else -1, c, means[int(sid)])
     lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
     lut_c = np.zeros(int(seg.max()) + 1)
     for sid, (k, c) in accepted.items():
