@@ -509,3 +509,20 @@ def test_coverage_losses_classify_every_stripe_pixel(results, scenes_capture):
     loss = coverage_losses(ident, truth)
     assert sum(loss.values()) == pytest.approx(1.0)
     assert loss["covered"] == pytest.approx(m["coverage"])
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"min_confirm": float("nan")},
+        {"confirm_share": -0.1},
+        {"neighbour_share": float("nan")},
+        {"extrapolate_top": -1},
+        {"extrapolate_top": 2.5},
+    ],
+)
+def test_order_rule_params_are_checked(scenes_reference, bad):
+    img = np.zeros(scenes_reference.image_size[::-1], np.uint8)
+    name = next(iter(bad))
+    with pytest.raises(IdentificationError, match=name):
+        identify(img, scenes_reference, IdentifyParams(**bad))

@@ -930,6 +930,13 @@ def identify(
         raise IdentificationError(
             f"params.depth_margin must be >= 0 (or inf for no depth limit), got {p.depth_margin}"
         )
+    for name in ("min_confirm", "confirm_share", "neighbour_share"):
+        if not getattr(p, name) >= 0:  # also catches NaN
+            raise IdentificationError(f"params.{name} must be >= 0, got {getattr(p, name)}")
+    if not (isinstance(p.extrapolate_top, int) and p.extrapolate_top >= 0):
+        raise IdentificationError(
+            f"params.extrapolate_top must be an integer >= 0 (0: never), got {p.extrapolate_top!r}"
+        )
     img = np.asarray(image)
     if img.ndim != 2:
         raise IdentificationError(f"image must be a 2-D grayscale array, got shape {img.shape}")
