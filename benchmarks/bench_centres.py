@@ -21,12 +21,11 @@ Run:  .venv/bin/python benchmarks/bench_centres.py [--scale 1.0] [--slits 25] [-
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 
 import numpy as np
 
 from multislit.sim.render import render
-from multislit.sim.rig import RigSpec, SimulatedRig
+from multislit.sim.rig import RigSpec, SimulatedRig, dense_rig
 from multislit.sim.scene import large_plane, spheres, steps, textured
 from multislit.slits import CENTRE_METHODS, extract_slits, refine_centres
 from multislit.triangulation import triangulate
@@ -63,11 +62,7 @@ def main() -> None:
     ap.add_argument("--slits", type=int, default=25, choices=(25, 49))
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args()
-    spec = RigSpec()
-    if a.slits == 49:  # the identification benchmark's 49-slit rig: twice the pitch, thinner sheet
-        spec = replace(
-            spec, slits=replace(spec.slits, num_slits=49, pitch_um=68.0, stripe_sigma_mrad=0.6)
-        )
+    spec = dense_rig() if a.slits == 49 else RigSpec()
     if a.scale != 1.0:
         spec = spec.scaled(a.scale)
     rig = SimulatedRig.build(spec)

@@ -182,6 +182,20 @@ class RigSpec:
         return replace(self, camera=cam, slits=slits, dots=dots)
 
 
+def dense_rig() -> RigSpec:
+    """The default rig with a grating of twice the pitch: 49 slits over the same field.
+
+    Pitch 68 um (default 34 um, 25 slits) and a thinner sheet (stripe sigma 0.6 mrad, default
+    0.8): about 17 px between stripes at full size. The identification and centre benchmarks'
+    second rig, and the tests' 49-slit scenes. Its ``scaled(0.5)`` puts the stripes ~8.6 px
+    apart at the same stripe width, as dense as a 98-slit grating at full size.
+    """
+    base = RigSpec()
+    return replace(
+        base, slits=replace(base.slits, num_slits=49, pitch_um=68.0, stripe_sigma_mrad=0.6)
+    )
+
+
 # --------------------------------------------------------------------------- truth models
 @dataclass(frozen=True, eq=False)
 class SlitProjector:
