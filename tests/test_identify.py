@@ -65,7 +65,7 @@ def test_few_confident_mistakes(results, scene):
 
 @pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "freeform", "textured"])
 def test_most_stripe_pixels_get_a_point(results, scene):
-    # measured: holes 95.5, spheres 92.0, steps 96.4, freeform 91.9, textured 97.7 %
+    # measured: holes 95.5, spheres 92.0, steps 96.4, freeform 91.9, textured 97.5 %
     assert results[scene][1]["coverage"] >= 0.90
 
 
