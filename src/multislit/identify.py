@@ -205,9 +205,10 @@ def _band_samples(seg: I64, v: F64, step_px: float, lo: float, hi: float) -> NDA
     below = np.unique(seg[(seg >= 0) & (v > hi)])
     if below.size == 0 or si.size == 0:
         return si
-    order, _, last = _segment_runs(seg_in, v)
-    ends = order[last == np.arange(len(order))]
-    ends = ends[np.isin(seg[ends], below)]
+    # the last row in the band of each segment that runs on below it
+    m = np.flatnonzero(inside & np.isin(seg, below))
+    o = m[np.lexsort((v[m], seg[m]))]
+    ends = o[np.r_[seg[o][1:] != seg[o][:-1], True]] if o.size else o
     si = np.unique(np.r_[si, ends])
     return si[np.lexsort((v[si], seg[si]))]  # by segment, then row, as _sample_points
 
