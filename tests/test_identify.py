@@ -40,15 +40,20 @@ from multislit.sim.evaluate import coverage_losses, identification_metrics
 from multislit.slits import extract_slits
 
 
-@pytest.fixture(scope="module")
-def results(scenes_capture, scenes_reference):
-    cap = Capture.open(scenes_capture)
+def _identify_scans(capture, reference):
+    """Per scan of a simulated capture: (its identification, its metrics against the truth)."""
+    cap = Capture.open(capture)
     out = {}
     for p in cap.scans:
-        ident = identify(cap.image(p), scenes_reference)
-        truth = np.load(scenes_capture / "truth" / f"{p.stem}.npz")["slit"]
+        ident = identify(cap.image(p), reference)
+        truth = np.load(capture / "truth" / f"{p.stem}.npz")["slit"]
         out[p.stem] = (ident, identification_metrics(ident, truth))
     return out
+
+
+@pytest.fixture(scope="module")
+def results(scenes_capture, scenes_reference):
+    return _identify_scans(scenes_capture, scenes_reference)
 
 
 @pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "freeform", "textured"])
@@ -71,13 +76,10 @@ def test_most_stripe_pixels_get_a_point(results, scene):
 
 @pytest.fixture(scope="module")
 def dense_results(dense_scenes_capture, dense_scenes_reference):
-    cap = Capture.open(dense_scenes_capture)
-    out = {}
-    for p in cap.scans:
-        ident = identify(cap.image(p), dense_scenes_reference)
-        truth = np.load(dense_scenes_capture / "truth" / f"{p.stem}.npz")["slit"]
-        out[p.stem] = identification_metrics(ident, truth)
-    return out
+    # the metrics only: five full-size identifications (with their extractions) held for the
+    # whole module would cost memory for nothing
+    scans = _identify_scans(dense_scenes_capture, dense_scenes_reference)
+    return {name: m for name, (_, m) in scans.items()}
 
 
 @pytest.mark.parametrize("scene", ["holes", "spheres", "steps", "freeform", "textured"])
