@@ -58,6 +58,10 @@ def main() -> None:
         "--losses", action="store_true", help="also print where the coverage is lost, per scene"
     )
     args = ap.parse_args()
+    if not args.scale > 0:  # also NaN
+        ap.error(
+            f"--scale must be a positive number (1: 1280x1024, 0.5: half size), got {args.scale}"
+        )
     params = IdentifyParams(follow_stripe=args.follow_stripe, depth_margin=args.depth_margin)
     print(
         f"identification vs truth, camera scale {args.scale}, seed {args.seed}, "
