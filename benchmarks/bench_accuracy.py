@@ -35,7 +35,11 @@ from typing import Any
 
 import numpy as np
 
-from multislit.acceptance import (
+from multislit.calibrate import Calibration, run_calibration
+from multislit.errors import MultislitError
+from multislit.identify import ReferenceSet
+from multislit.io import Capture
+from multislit.measure import (
     fit_sphere,
     flatness_error,
     markdown_table,
@@ -43,12 +47,7 @@ from multislit.acceptance import (
     probing_error_size,
     sphere_spacing_error,
 )
-from multislit.calibrate import run_calibration
-from multislit.calibration import Calibration
-from multislit.capture import Capture
-from multislit.errors import MultislitError
-from multislit.reference import ReferenceSet
-from multislit.scan import ScanResult, capture_reference, scan_image
+from multislit.reconstruct import ScanResult, capture_reference, scan_image
 from multislit.sim.rig import RigSpec
 from multislit.sim.scene import Polygon, Primitive, Scene, Sphere, constant
 from multislit.sim.simulate import simulate_capture
@@ -288,7 +287,7 @@ def run_suite(
             rows += evaluate(res, rig.scenes[sc.name])
         hole_rows: list[dict[str, Any]] = []
         if holes:
-            from multislit.demo import run_demo
+            from multislit.app.demo import run_demo
 
             demo = run_demo(Path(tmp) / "demo", seed=seed, scale=scale, figures=False)
             hole_rows = demo["table1"]

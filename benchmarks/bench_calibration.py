@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from multislit import calibrate as cal_mod
-from multislit.calibrate import run_calibration
-from multislit.calibration import rms
+import multislit.calibrate.pipeline as cal_mod
+from multislit.calibrate import rms, run_calibration
 from multislit.geometry import camera_from_dict
-from multislit.triangulation import triangulate
+from multislit.reconstruct import triangulate
 
 
 def truth_errors(capture: Path, cal, scan: str = "plane") -> tuple[float, np.ndarray]:

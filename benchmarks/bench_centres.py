@@ -24,11 +24,11 @@ import argparse
 
 import numpy as np
 
+from multislit.reconstruct import triangulate
 from multislit.sim.render import render
 from multislit.sim.rig import RigSpec, SimulatedRig, dense_rig
 from multislit.sim.scene import large_plane, spheres, steps, textured
-from multislit.slits import CENTRE_METHODS, extract_slits, refine_centres
-from multislit.triangulation import triangulate
+from multislit.stripes import CENTRE_METHODS, extract_slits, refine_centres
 
 
 def point_errors(rig: SimulatedRig, rendered, scene, u: np.ndarray, v: np.ndarray) -> np.ndarray:

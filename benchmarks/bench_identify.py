@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from multislit.capture import Capture
-from multislit.identify import IdentifyParams, identify
-from multislit.reference import prepare_reference
+from multislit.identify import IdentifyParams, identify, prepare_reference
+from multislit.io import Capture
 from multislit.sim.evaluate import LOSSES, coverage_losses, identification_metrics
 from multislit.sim.rig import RigSpec, dense_rig
 from multislit.sim.simulate import simulate_capture

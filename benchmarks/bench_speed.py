@@ -30,14 +30,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from multislit.capture import Capture
 from multislit.geometry import PinholeCamera
-from multislit.identify import IdentifyParams, identify, template_size
-from multislit.reference import prepare_reference
+from multislit.identify import IdentifyParams, identify, prepare_reference, template_size
+from multislit.io import Capture
+from multislit.reconstruct import triangulate
 from multislit.sim.rig import RigSpec
 from multislit.sim.simulate import simulate_capture
-from multislit.slits import extract_slits, refine_centres
-from multislit.triangulation import triangulate
+from multislit.stripes import extract_slits, refine_centres
 
 
 def run(num_slits: int, repeat: int, workdir: Path) -> dict:

@@ -26,13 +26,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from multislit.acceptance import (
+from multislit.errors import MultislitError
+from multislit.measure import (
     flatness_error,
     markdown_table,
     probing_error_form,
     probing_error_size,
 )
-from multislit.errors import MultislitError
 from multislit.sim.patterns import (
     PatternProjector,
     decode_gray_code,
@@ -153,8 +153,8 @@ def _ours_rig(spec: RigSpec, seed: int = 0) -> tuple:
         from pathlib import Path
 
         from multislit.calibrate import run_calibration
-        from multislit.capture import Capture
-        from multislit.scan import capture_reference
+        from multislit.io import Capture
+        from multislit.reconstruct import capture_reference
         from multislit.sim.simulate import simulate_capture
 
         with tempfile.TemporaryDirectory() as tmp:
@@ -173,7 +173,7 @@ def ours(spec: RigSpec, scene: Scene, rng: np.random.Generator) -> PeerResult | 
     scene's first hit along the camera ray through the point's sub-pixel (u, v) (elsewhere the
     truth at pixel centres, used for the depth-edge mask).
     """
-    from multislit.scan import scan_image
+    from multislit.reconstruct import scan_image
 
     cal, ref = _ours_rig(spec)
     rig = SimulatedRig.build(spec)

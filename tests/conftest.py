@@ -59,8 +59,8 @@ def scenes_capture(tmp_path_factory: pytest.TempPathFactory, small_spec: RigSpec
 
 
 def _reference(capture: Path):
-    from multislit.capture import Capture
-    from multislit.reference import prepare_reference
+    from multislit.identify import prepare_reference
+    from multislit.io import Capture
 
     cap = Capture.open(capture)
     return prepare_reference(

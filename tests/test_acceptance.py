@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from multislit.acceptance import (
+from multislit.errors import MeasurementError, MultislitError
+from multislit.measure import (
     AcceptanceRow,
     acceptance_table,
     fit_sphere,
@@ -13,7 +14,6 @@ from multislit.acceptance import (
     probing_error_size,
     sphere_spacing_error,
 )
-from multislit.errors import MeasurementError, MultislitError
 
 
 def sphere_points(rng, centre, radius, n, radial=None, cap_deg=180.0):

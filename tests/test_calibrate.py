@@ -10,20 +10,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from multislit import calibrate as cal_mod
+import multislit.calibrate.pipeline as cal_mod
+from multislit.app.cli import main
 from multislit.calibrate import (
+    Calibration,
     calibrate_camera_from_capture,
     calibrate_capture,
+    rms,
     run_calibration,
     transfer_labels,
 )
-from multislit.calibration import Calibration, rms
-from multislit.capture import Capture
-from multislit.cli import main
 from multislit.errors import CalibrationError, CaptureError
 from multislit.geometry import camera_from_dict
-from multislit.slits import extract_slits
-from multislit.triangulation import triangulate
+from multislit.io import Capture
+from multislit.reconstruct import triangulate
+from multislit.stripes import extract_slits
 
 
 # --------------------------------------------------------------------------- helpers
@@ -131,7 +132,7 @@ def test_camera_is_right_over_the_whole_target(small_capture):
     w, h = cap.image_size
     uu, vv = np.meshgrid(np.linspace(0, w - 1, 32), np.linspace(0, h - 1, 26))
     uv = np.stack([uu.ravel(), vv.ravel()], axis=1)
-    from multislit.calibration import points_on_faces
+    from multislit.calibrate import points_on_faces
 
     xyz, face = points_on_faces(true_cam, uv, cap.target.faces)
     ok = face >= 0

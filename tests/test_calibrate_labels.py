@@ -5,10 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from multislit.calibrate import run_calibration
-from multislit.calibrate_labels import OrderParams, _run_offsets, _runs, label_by_order
-from multislit.calibration import rms
-from multislit.capture import Capture
+from multislit.calibrate import rms, run_calibration
+from multislit.calibrate.slit_labels import OrderParams, _run_offsets, _runs, label_by_order
+from multislit.io import Capture
 
 from .test_calibrate import truth_triangulation
 

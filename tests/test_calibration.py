@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from multislit.calibration import (
+from multislit.calibrate import (
     SCHEMA,
     Calibration,
     ProjectorMatrix,
@@ -24,9 +24,9 @@ from multislit.calibration import (
     rms,
     slit_plane_rms,
 )
-from multislit.capture import Face
 from multislit.errors import CalibrationError, MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, look_at, rvec_from_rotation
+from multislit.io import Face
 
 HEIKKILA = (
     Path(__file__).resolve().parents[1].parent

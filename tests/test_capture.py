@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from multislit.capture import Capture, read_image
 from multislit.errors import CaptureError
+from multislit.io import Capture, read_image
 
 
 def _copy(src, tmp_path):

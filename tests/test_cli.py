@@ -1,6 +1,6 @@
 import json
 
-from multislit.cli import main
+from multislit.app.cli import main
 
 
 def test_simulate_writes_a_capture(tmp_path, capsys):

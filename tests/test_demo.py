@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from multislit.cli import main
+from multislit.app.cli import main
 
 
 def test_demo_half_size(tmp_path, capsys):

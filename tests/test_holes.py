@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from multislit.errors import MeasurementError, MultislitError
-from multislit.holes import (
+from multislit.measure import (
     CircleFit,
     fit_circle,
     fit_plane_robust,

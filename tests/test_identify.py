@@ -11,10 +11,15 @@ import warnings
 import numpy as np
 import pytest
 
-import multislit.identify as identify_module
-from multislit.capture import Capture
+import multislit.identify.labelling as identify_module
 from multislit.errors import IdentificationError
 from multislit.identify import (
+    curve_u,
+    intersect_line_curves,
+    normalise_patches,
+    sample_patches,
+)
+from multislit.identify.labelling import (
     IdentifyParams,
     _band_samples,
     _between_agreeing,
@@ -29,15 +34,10 @@ from multislit.identify import (
     split_at_brightness_steps,
     template_size,
 )
-from multislit.order import _nanmedian_rows
-from multislit.reference import (
-    curve_u,
-    intersect_line_curves,
-    normalise_patches,
-    sample_patches,
-)
+from multislit.identify.order import _nanmedian_rows
+from multislit.io import Capture
 from multislit.sim.evaluate import coverage_losses, identification_metrics
-from multislit.slits import extract_slits
+from multislit.stripes import extract_slits
 
 
 def _identify_scans(capture, reference):
@@ -343,7 +343,7 @@ def test_measuring_volume_limits_the_hypotheses(scenes_capture, scenes_reference
     """A point can only take a slit that lights it at a depth inside the references' volume:
     with the volume shrunk to the boards' span, far-off slits lose their candidates, and a
     NaN margin is a clear error."""
-    from multislit.identify import _in_volume
+    from multislit.identify.labelling import _in_volume
 
     cap = Capture.open(scenes_capture)
     img = cap.image(cap.root / "scans" / "holes.png")

@@ -7,7 +7,7 @@ import pytest
 from plyfile import PlyData, PlyElement
 
 from multislit.errors import MultislitError
-from multislit.ply import read_ply, write_ply
+from multislit.io import read_ply, write_ply
 
 
 def _cloud(n: int = 50, seed: int = 0):

@@ -4,10 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
-from multislit.capture import Capture
 from multislit.errors import ReferenceImageError
 from multislit.geometry import PinholeCamera
-from multislit.reference import (
+from multislit.identify.reference import (
     WINDOW_SUMS,
     ReferenceSet,
     _remap_patches,
@@ -19,6 +18,7 @@ from multislit.reference import (
     sample_sheared_patches,
     window_sums,
 )
+from multislit.io import Capture
 
 
 def test_reference_curves_follow_the_true_slits(scenes_capture, scenes_reference):

@@ -10,14 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from multislit.calibrate import run_calibration, write_calibration
-from multislit.calibration import Calibration
-from multislit.capture import Capture
-from multislit.cli import main
-from multislit.demo import demo_rig
+from multislit.app.cli import main
+from multislit.app.demo import demo_rig
+from multislit.calibrate import Calibration, run_calibration, write_calibration
 from multislit.errors import CalibrationError, MeasurementError
-from multislit.ply import read_ply
-from multislit.scan import (
+from multislit.io import Capture, read_ply
+from multislit.reconstruct import (
     ScanParams,
     ScanResult,
     capture_reference,
@@ -139,7 +137,7 @@ def test_calibration_of_other_size_is_clear(cap_dir):
         scan_capture(cap_dir, calibration=other)
     cap = Capture.open(cap_dir)
     img = cap.image(cap.scans[0])
-    from multislit.scan import capture_reference
+    from multislit.reconstruct import capture_reference
 
     with pytest.raises(CalibrationError, match="640x512"):
         scan_image(img, capture_reference(cap), other)
@@ -206,7 +204,7 @@ def test_stripe_line_from_calibration_follows_the_stripe(cap_dir, scans, truth):
     # the hole-edge profile runs along the calibration's stripe line on the plate; on the plane
     # scan that line must lie on the measured stripe centres (half size; measured median
     # |du| 0.012-0.090 px per slit)
-    from multislit.scan import _line_of_planes, _stripe_line_in_image
+    from multislit.reconstruct.scan import _line_of_planes, _stripe_line_in_image
 
     cal = load_capture_calibration(Capture.open(cap_dir))
     r = scans["plane"]

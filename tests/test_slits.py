@@ -9,7 +9,7 @@ import pytest
 from scipy.special import erf
 
 from multislit.errors import MultislitError
-from multislit.slits import (
+from multislit.stripes import (
     CENTRE_METHODS,
     FWHM_PER_SIGMA,
     SlitExtraction,
@@ -399,9 +399,9 @@ def test_refine_does_not_cross_segment_ends():
 
 def test_refine_simulated_plane_with_speckle(small_rig):
     """Refined centres are closer to the truth on a simulated plane (speckle, dots, noise)."""
+    from multislit.reconstruct import triangulate
     from multislit.sim.render import render as sim_render
     from multislit.sim.scene import large_plane
-    from multislit.triangulation import triangulate
 
     scene = large_plane(15)
     r = sim_render(small_rig, scene, np.random.default_rng(0))

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from multislit.calibration import ProjectorMatrix, calibrate_dlt, fit_slit_planes
+from multislit.calibrate import ProjectorMatrix, calibrate_dlt, fit_slit_planes
 from multislit.errors import MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, look_at, rvec_from_rotation
-from multislit.triangulation import triangulate, triangulate_matrix
+from multislit.reconstruct import triangulate, triangulate_matrix
 
 
 def make_camera(dist=(0.0, 0.0, 0.0, 0.0)) -> PinholeCamera:

@@ -1,11 +1,12 @@
 """Exceptions raised by multislit.
 
-Every error the library raises on bad input derives from :class:`MultislitError`, so the CLI
+Every error the library raises on bad input derives from :class:`MultislitError` (a
+:class:`ValueError`), so the CLI
 can print its message and exit non-zero without a traceback.
 """
 
 
-class MultislitError(Exception):
+class MultislitError(ValueError):
     """Base class: bad input or a measurement that cannot be made. The message says what to fix."""
 
 

@@ -30,11 +30,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import MeasurementError, MultislitError
-from ..geometry import PinholeCamera, as_points, intersect_rays_planes, rvec_from_rotation
-from .render import R0, SHADOW_EPS, camera_rays, expose
-from .rig import SensorSpec, SimulatedRig
-from .scene import Scene
+from multislit.errors import MeasurementError, MultislitError
+from multislit.geometry import PinholeCamera, as_points, intersect_rays_planes, rvec_from_rotation
+from multislit.sim.render import R0, SHADOW_EPS, camera_rays, expose
+from multislit.sim.rig import SensorSpec, SimulatedRig
+from multislit.sim.scene import Scene
 
 F64 = NDArray[np.float64]
 

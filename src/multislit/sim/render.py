@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .rig import SimulatedRig
-from .scene import Scene
+from multislit.sim.rig import SimulatedRig
+from multislit.sim.scene import Scene
 
 F64 = NDArray[np.float64]
 R0 = 900.0  # mm: range at which the laser powers are specified

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import MultislitError
-from ..geometry import PinholeCamera, look_at, rvec_from_rotation
+from multislit.errors import MultislitError
+from multislit.geometry import PinholeCamera, look_at, rvec_from_rotation
 
 F64 = NDArray[np.float64]
 

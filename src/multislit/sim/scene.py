@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import MultislitError
+from multislit.errors import MultislitError
 
 F64 = NDArray[np.float64]
 Texture = Callable[[F64, F64], F64]  # local (a, b) mm -> albedo (N,)

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture import Target, write_image, write_rig_json
-from ..errors import MultislitError
-from .render import Rendered, render
-from .rig import RigSpec, SimulatedRig
-from .scene import Scene, make_scene, reference_board, standard_object
+from multislit.errors import MultislitError
+from multislit.io import Target, write_image, write_rig_json
+from multislit.sim.render import Rendered, render
+from multislit.sim.rig import RigSpec, SimulatedRig
+from multislit.sim.scene import Scene, make_scene, reference_board, standard_object
 
 Progress = Callable[[int, int, str], None]
 

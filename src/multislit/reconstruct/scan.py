@@ -19,13 +19,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .calibration import Calibration
-from .capture import Capture
-from .errors import CalibrationError, MeasurementError
-from .identify import Identification, IdentifyParams, identify
-from .reference import ReferenceSet, prepare_reference
-from .slits import refine_centres
-from .triangulation import triangulate
+from multislit.calibrate import Calibration
+from multislit.errors import CalibrationError, MeasurementError
+from multislit.identify import (
+    Identification,
+    IdentifyParams,
+    ReferenceSet,
+    identify,
+    prepare_reference,
+)
+from multislit.io import Capture
+from multislit.reconstruct.triangulation import triangulate
+from multislit.stripes import refine_centres
 
 F64 = NDArray[np.float64]
 Progress = Callable[[int, int, str], None]
@@ -170,7 +175,7 @@ class ScanResult:
     @classmethod
     def from_ply(cls, path: str | Path) -> ScanResult:
         """Read a PLY written by :meth:`write_ply` (needs x y z, u v and slit)."""
-        from .ply import read_ply
+        from multislit.io import read_ply
 
         d = read_ply(path)
         missing = [k for k in ("x", "y", "z", "v", "slit") if k not in d]
@@ -206,7 +211,7 @@ class ScanResult:
 
     def write_ply(self, path: str | Path, comment: str | None = None) -> Path:
         """Write the points as binary little-endian PLY (x y z u v slit confidence)."""
-        from .ply import write_ply
+        from multislit.io import write_ply
 
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -657,7 +662,7 @@ def measure_holes_in_scan(
     -------
     HoleMeasurement
     """
-    from .holes import fit_plane_robust, hole_edges_from_profiles, measure_holes
+    from multislit.measure import fit_plane_robust, hole_edges_from_profiles, measure_holes
 
     if result.num_points < 10:
         raise MeasurementError(

@@ -32,8 +32,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .capture import Capture
-from .order import OrderParams, _apply, _run_offsets, _runs
+from multislit.identify.order import OrderParams, _apply, _run_offsets, _runs
+from multislit.io import Capture
 
 F64 = NDArray[np.float64]
 
@@ -64,14 +64,13 @@ def _nearest_in_row(u_from: F64, v_from: F64, u: F64, v: F64, tol_px: float) -> 
 
     A point with two candidates within ``tol_px`` gets -1 (ambiguous).
     """
-    from .calibrate import transfer_labels
+    from multislit.calibrate.pipeline import transfer_labels
 
     return transfer_labels(u_from, v_from, np.arange(len(u_from)), u, v, tol_px=tol_px)
 
 
 def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
-    from .identify import IdentifyParams, identify
-    from .reference import prepare_reference
+    from multislit.identify import IdentifyParams, identify, prepare_reference
 
     if reference is None:
         refs = [cap.image(q) for q in cap.references]
@@ -81,8 +80,8 @@ def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
 
 
 def _faces(cap: Capture, uv: F64, camera: Any) -> NDArray[np.intp]:
-    from .calibrate import calibrate_camera_from_capture
-    from .calibration import points_on_faces
+    from multislit.calibrate.models import points_on_faces
+    from multislit.calibrate.pipeline import calibrate_camera_from_capture
 
     if cap.target is None or not cap.target.faces:
         return np.zeros(len(uv), np.intp)
@@ -119,8 +118,8 @@ def label_by_order(
     -------
     OrderLabels (u, v, slit, ...), -1 for centres left unlabelled
     """
-    from .calibrate import CALIBRATION_EXTRACT
-    from .slits import extract_slits
+    from multislit.calibrate.pipeline import CALIBRATION_EXTRACT
+    from multislit.stripes import extract_slits
 
     p = params or OrderParams()
     cap = capture if isinstance(capture, Capture) else Capture.open(capture)

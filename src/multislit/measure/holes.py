@@ -33,8 +33,8 @@ from scipy.spatial.distance import pdist
 from scipy.stats import norm
 from scipy.stats import t as student_t
 
-from .errors import MeasurementError, MultislitError
-from .geometry import as_points
+from multislit.errors import MeasurementError, MultislitError
+from multislit.geometry import as_points
 
 F64 = NDArray[np.float64]
 

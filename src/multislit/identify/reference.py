@@ -21,8 +21,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ReferenceImageError
-from .slits import SlitExtraction, extract_slits
+from multislit.errors import ReferenceImageError
+from multislit.stripes import SlitExtraction, extract_slits
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]

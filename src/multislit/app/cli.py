@@ -9,8 +9,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from . import __version__
-from .errors import MultislitError
+from multislit import __version__
+from multislit.errors import MultislitError
 
 
 def _progress(prefix: str):
@@ -33,9 +33,9 @@ def _progress(prefix: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from .sim.rig import RigSpec
-    from .sim.scene import SCENES
-    from .sim.simulate import simulate_capture
+    from multislit.sim.rig import RigSpec
+    from multislit.sim.scene import SCENES
+    from multislit.sim.simulate import simulate_capture
 
     spec = RigSpec.load(args.rig) if args.rig else RigSpec()
     if args.slits:
@@ -61,14 +61,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from .sim.rig import RigSpec
+    from multislit.sim.rig import RigSpec
 
     print(RigSpec().to_json())
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from multislit.app.demo import run_demo
 
     result = run_demo(Path(args.out), seed=args.seed, scale=args.scale, progress=_progress("demo"))
     if args.json:
@@ -80,7 +80,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibrate import format_report, run_calibration, write_calibration
+    from multislit.calibrate import format_report, run_calibration, write_calibration
 
     capture = Path(args.capture)
     result = run_calibration(capture, source=args.source)
@@ -93,9 +93,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
-    from .capture import Capture
-    from .errors import MeasurementError
-    from .scan import scan_capture
+    from multislit.errors import MeasurementError
+    from multislit.io import Capture
+    from multislit.reconstruct import scan_capture
 
     cap = Capture.open(args.capture, require_target=False)
     images = [Path(args.image)] if args.image else None
@@ -119,14 +119,14 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 
 def cmd_holes(args: argparse.Namespace) -> int:
-    from .errors import MeasurementError
-    from .scan import ScanResult, measure_holes_in_scan
+    from multislit.errors import MeasurementError
+    from multislit.reconstruct import ScanResult, measure_holes_in_scan
 
     src = Path(args.source)
     measurements = {}
     if src.is_dir():
-        from .capture import Capture
-        from .scan import HOLE_SCAN_PARAMS, load_capture_calibration, scan_capture
+        from multislit.io import Capture
+        from multislit.reconstruct import HOLE_SCAN_PARAMS, load_capture_calibration, scan_capture
 
         cap = Capture.open(src, require_target=False)
         cal = load_capture_calibration(cap, args.calibration)
@@ -170,7 +170,7 @@ def cmd_holes(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .sim.scene import SCENES
+    from multislit.sim.scene import SCENES
 
     p = argparse.ArgumentParser(
         prog="multislit",

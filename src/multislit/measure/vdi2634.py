@@ -28,8 +28,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from .errors import MeasurementError, MultislitError
-from .geometry import as_points, fit_plane
+from multislit.errors import MeasurementError, MultislitError
+from multislit.geometry import as_points, fit_plane
 
 F64 = NDArray[np.float64]
 

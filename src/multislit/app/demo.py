@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from .capture import Capture
-from .errors import MultislitError
-from .sim.rig import RigSpec
-from .sim.simulate import Progress, simulate_capture
+from multislit.errors import MultislitError
+from multislit.io import Capture
+from multislit.sim.rig import RigSpec
+from multislit.sim.simulate import Progress, simulate_capture
 
 #: The paper's Table 1: (name, actual, estimated, error), mm.
 PAPER_TABLE1 = (("D1", 100.0, 99.7, -0.3), ("D2", 50.0, 49.5, -0.5), ("D3", 30.0, 29.9, -0.1))
@@ -102,8 +102,13 @@ def run_demo(
     figures: bool = True,
 ) -> dict[str, Any]:
     """Run the demo, writing everything into ``out``; returns the figures and report lines."""
-    from .calibrate import run_calibration, write_calibration
-    from .scan import HOLE_SCAN_PARAMS, capture_reference, measure_holes_in_scan, scan_image
+    from multislit.calibrate import run_calibration, write_calibration
+    from multislit.reconstruct import (
+        HOLE_SCAN_PARAMS,
+        capture_reference,
+        measure_holes_in_scan,
+        scan_image,
+    )
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -174,7 +179,11 @@ def run_demo(
                 }
             )
         if figures:
-            from .figures import hole_edges_figure, point_cloud_figure, slit_addresses_figure
+            from multislit.app.figures import (
+                hole_edges_figure,
+                point_cloud_figure,
+                slit_addresses_figure,
+            )
 
             ident = res.identification
             un = ident.slit < 0

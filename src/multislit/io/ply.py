@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import __version__
-from .errors import MultislitError
-from .geometry import as_points
+from multislit import __version__
+from multislit.errors import MultislitError
+from multislit.geometry import as_points
 
 __all__ = ["write_ply", "read_ply", "PLY_SCALAR_TYPES"]
 

@@ -18,9 +18,9 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import IdentificationError
-from .order import OrderParams, _apply, _run_offsets, _runs
-from .reference import (
+from multislit.errors import IdentificationError
+from multislit.identify.order import OrderParams, _apply, _run_offsets, _runs
+from multislit.identify.reference import (
     ReferenceSet,
     bilinear_patch_moments,
     curve_du,
@@ -30,7 +30,7 @@ from .reference import (
     sample_patches,
     sample_sheared_patches,
 )
-from .slits import SlitExtraction, extract_slits
+from multislit.stripes import SlitExtraction, extract_slits
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .errors import IdentificationError
+from multislit.errors import IdentificationError
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import CaptureError
+from multislit.errors import CaptureError
 
 FORMAT = "multislit-capture/1"
 MIN_REFERENCES = 2

@@ -14,8 +14,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import MultislitError
-from .geometry import F64, Camera, as_points, intersect_rays_planes
+from multislit.errors import MultislitError
+from multislit.geometry.camera import F64, Camera, as_points, intersect_rays_planes
 
 
 def triangulate_matrix(

@@ -40,9 +40,8 @@ from scipy.ndimage import gaussian_filter, map_coordinates, maximum_filter, spli
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from .capture import Face
-from .errors import CalibrationError, MultislitError
-from .geometry import (
+from multislit.errors import CalibrationError, MultislitError
+from multislit.geometry.camera import (
     F64,
     MatrixCamera,
     PinholeCamera,
@@ -52,6 +51,7 @@ from .geometry import (
     rotation_from_rvec,
     rvec_from_rotation,
 )
+from multislit.io import Face
 
 SCHEMA = "multislit-calibration/1"
 MIN_DLT_POINTS = 6

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .errors import MultislitError
+from multislit.errors import MultislitError
 
 __all__ = ["slit_addresses_figure", "point_cloud_figure", "hole_edges_figure"]
 
@@ -189,7 +189,7 @@ def hole_edges_figure(
     points : (N, 3) mm, the scan's points, drawn faintly (plate points only)
     truth : optional list of {"centre": xyz, "diameter": mm}: the true holes (dashed)
     """
-    from .holes import project_to_plane
+    from multislit.measure import project_to_plane
 
     pl = np.asarray(measurement.plane, float)
     fig = _figure(10.0, 7.0)

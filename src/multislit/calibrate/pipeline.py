@@ -46,9 +46,6 @@ Units: mm in the world (target) frame, px in the image.
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-import inspect
 import json
 import math
 from collections.abc import Callable, Sequence
@@ -60,7 +57,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter, maximum_filter, minimum_filter
 
-from .calibration import (
+from multislit.calibrate.models import (
     MIN_DLT_POINTS,
     Calibration,
     MarkerDetection,
@@ -74,9 +71,9 @@ from .calibration import (
     rms,
     slit_plane_rms,
 )
-from .capture import Capture, Face
-from .errors import CalibrationError, CaptureError, MultislitError
-from .geometry import F64, MatrixCamera, PinholeCamera
+from multislit.errors import CalibrationError, CaptureError, MultislitError
+from multislit.geometry.camera import F64, MatrixCamera, PinholeCamera
+from multislit.io import Capture, Face
 
 #: Extraction settings for the calibration image. The target's ramp shows the stripes slanted
 #: by up to ~40 degrees; the default vertical opening (sized to remove dots) cuts such stripes
@@ -316,8 +313,8 @@ def refine_camera_with_lines(
     """
     from scipy.optimize import least_squares
 
-    from .calibration import _project_params
-    from .geometry import _undistort
+    from multislit.calibrate.models import _project_params
+    from multislit.geometry.camera import _undistort
 
     X = np.asarray(world, dtype=float)
     x = np.asarray(image, dtype=float)
@@ -388,7 +385,7 @@ def stripe_lines(
     :func:`refine_camera_with_lines`): stripe segments on each target face in
     ``calibration/slits.png`` (away from the face outlines, albedo edges and double detections)
     and stripe segments on the reference boards. No slit identification is needed."""
-    from .slits import extract_slits
+    from multislit.stripes import extract_slits
 
     lines: list[F64] = []
     if capture.slits_image.is_file() and capture.target is not None and capture.target.faces:
@@ -459,47 +456,10 @@ def hand_slit_points(capture: str | Path | Capture) -> SlitPointSet:
 
 
 def _find_identifier() -> LabelFn | None:
-    """A ``label_slits(image, capture)`` from :mod:`multislit.identify`, None if not installed.
+    """The default ``label_slits(image, capture)``: :func:`label_by_order`."""
+    from multislit.calibrate.slit_labels import label_by_order
 
-    By default :func:`multislit.calibrate_labels.label_by_order` (stripe order in each row,
-    anchored by the dot identification). Without it, a module function of
-    :mod:`multislit.identify` taking ``(image, capture)`` (one of :data:`_IDENTIFY_NAMES` but
-    ``identify``) is used as is; otherwise ``identify(image, reference)`` is called with the
-    capture's reference images prepared by :func:`multislit.reference.prepare_reference`.
-    """
-    if importlib.util.find_spec("multislit.identify") is None:
-        return None
-    if (
-        importlib.util.find_spec("multislit.calibrate_labels") is not None
-        and importlib.util.find_spec("multislit.reference") is not None
-    ):
-        by_order = getattr(
-            importlib.import_module("multislit.calibrate_labels"), "label_by_order", None
-        )
-        if callable(by_order):
-            return by_order
-    mod = importlib.import_module("multislit.identify")
-    for name in _IDENTIFY_NAMES[:-1]:
-        fn = getattr(mod, name, None)
-        if callable(fn) and not inspect.isclass(fn):
-            return fn
-    ident = getattr(mod, "identify", None)
-    prep = None
-    if importlib.util.find_spec("multislit.reference") is not None:
-        prep = getattr(importlib.import_module("multislit.reference"), "prepare_reference", None)
-    if not callable(ident) or not callable(prep):
-        raise CalibrationError(
-            "multislit.identify offers neither label_slits(image, capture) nor "
-            "identify(image, reference) with multislit.reference.prepare_reference; use the "
-            "hand readings (--source hand)"
-        )
-
-    def label(image: NDArray, capture: Capture) -> Any:
-        refs = [capture.image(p) for p in capture.references]
-        names = [p.name for p in capture.references]
-        return ident(image, prep(refs, capture.num_slits, names=names))
-
-    return label
+    return label_by_order
 
 
 def _labelled_points(result: Any, image: NDArray) -> tuple[F64, F64, NDArray[np.intp]]:
@@ -509,7 +469,7 @@ def _labelled_points(result: Any, image: NDArray) -> tuple[F64, F64, NDArray[np.
     ``(uv (K, 2), slit (K,))``, or a bare (K,) array for the points of
     ``extract_slits(image)`` with default settings.
     """
-    from .slits import extract_slits
+    from multislit.stripes import extract_slits
 
     slit = None
     if isinstance(result, tuple) and len(result) == 2:
@@ -645,7 +605,7 @@ def _refined_u(
     Each linked segment is cut into its pieces on one face (``face`` (K,), -1: left as is), so
     the fit along the stripe never spans the fold between two faces.
     """
-    from .slits import refine_centres
+    from multislit.stripes import refine_centres
 
     seg = np.asarray(ex.segment, np.int64)
     piece = np.where((seg >= 0) & (face >= 0), seg * max(n_faces, 1) + face, -1)
@@ -683,7 +643,7 @@ def auto_slit_points(
     -------
     SlitPointSet with ``source="auto"`` and the count after each filtering step
     """
-    from .slits import extract_slits
+    from multislit.stripes import extract_slits
 
     cap = _as_capture(capture)
     if cap.target is None or not cap.target.faces:

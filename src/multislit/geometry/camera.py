@@ -14,7 +14,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import MultislitError
+from multislit.errors import MultislitError
 
 F64 = NDArray[np.float64]
 

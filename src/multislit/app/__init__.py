@@ -1,0 +1,1 @@
+"""multislit.app: the command line, the demo and its figures."""
