@@ -1,6 +1,8 @@
 # Two commands on a fresh machine with Python 3.11+:
 #   make demo   -- the main job: the demo on the simulated rig
-#   make test   -- the test suite (and lint)
+#   make test   -- lint and the whole test suite
+# Fast loop while editing (leaves out the tests marked slow):
+#   .venv/bin/python -m pytest -m "not slow"
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin

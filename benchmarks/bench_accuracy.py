@@ -1,7 +1,7 @@
 """VDI/VDE 2634-2-style acceptance of the single-shot scanner on simulated scans.
 
 One simulated rig (the default: 25 slits identified by random dots), calibrated once from the
-paper's hand readings (``run_calibration(source="hand")``) with one reference set, scans:
+paper's hand readings (``calibrate_capture(capture, source="hand")``) with one reference set, scans:
 
 * spheres (radius 60 mm, ~0.14 of the measuring volume's diagonal) at three positions and
   depths (800, 900, 1000 mm): probing error size PS and form PF from the points within
@@ -35,12 +35,12 @@ from typing import Any
 
 import numpy as np
 
-from multislit.calibrate import Calibration, run_calibration
+from multislit.calibrate import Calibration, calibrate_capture
 from multislit.errors import MultislitError
+from multislit.geometry import fit_sphere
 from multislit.identify import ReferenceSet
 from multislit.io import Capture
 from multislit.measure import (
-    fit_sphere,
     flatness_error,
     markdown_table,
     probing_error_form,
@@ -48,8 +48,8 @@ from multislit.measure import (
     sphere_spacing_error,
 )
 from multislit.reconstruct import ScanResult, capture_reference, scan_image
+from multislit.sim import Polygon, Primitive, Scene, Sphere, constant
 from multislit.sim.rig import RigSpec
-from multislit.sim.scene import Polygon, Primitive, Scene, Sphere, constant
 from multislit.sim.simulate import simulate_capture
 
 RIG_Z = 1000.0  # the rig's z in the world (scene.py convention)
@@ -162,7 +162,7 @@ def prepare_rig(spec: RigSpec, scenes: list[Scene], out: Path, seed: int) -> Pre
     cap_dir = simulate_capture(out, scenes, spec, seed=seed, overwrite=True)
     t1 = time.perf_counter()
     cap = Capture.open(cap_dir)
-    cal = run_calibration(cap, source="hand").calibration
+    cal = calibrate_capture(cap, source="hand").calibration
     t2 = time.perf_counter()
     ref = capture_reference(cap)
     t3 = time.perf_counter()

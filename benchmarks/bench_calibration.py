@@ -3,7 +3,7 @@
 Simulates ``simulate_capture(out, ["plane"], RigSpec(), seed=0)`` (full size, 1280x1024;
 ``--half``: the tests' half-size capture, ``["holes", "steps"]``, ``RigSpec().scaled(0.5)``,
 seed 3) unless ``out`` already holds a capture, runs
-``run_calibration(out)`` (automatic projector calibration, the default) and prints:
+``calibrate_capture(out)`` (automatic projector calibration, the default) and prints:
 
 - the per-slit residual of the automatic points to their planes (median and max, mm), the
   number of slits with a plane, and the RMS over all their points;
@@ -19,14 +19,17 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-import multislit.calibrate.pipeline as cal_mod
-from multislit.calibrate import rms, run_calibration
+import multislit.calibrate.pipeline as pipeline
+import multislit.calibrate.slit_points as slit_points
+from multislit.calibrate import calibrate_capture
+from multislit.calibrate.camera import rms
 from multislit.geometry import camera_from_dict
 from multislit.reconstruct import triangulate
 
@@ -66,12 +69,13 @@ def main() -> None:
             simulate_capture(args.out, ["holes", "steps"], RigSpec().scaled(0.5), seed=3)
         else:
             simulate_capture(args.out, ["plane"], RigSpec(), seed=0)
+    # benchmark-only switches: the extraction's centres, or other refine_centres settings
     if args.no_refine:
-        cal_mod.CALIBRATION_REFINE = None
+        pipeline.auto_slit_points = functools.partial(slit_points.auto_slit_points, refine=False)
     elif args.refine is not None:
-        cal_mod.CALIBRATION_REFINE = args.refine
+        slit_points._REFINE = args.refine
     t0 = time.perf_counter()
-    r = run_calibration(args.out)
+    r = calibrate_capture(args.out)
     secs = time.perf_counter() - t0
     sp = r.calibration.slit_planes
     scan = "holes" if (args.out / "truth" / "holes.npz").is_file() else "plane"

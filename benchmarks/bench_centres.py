@@ -8,7 +8,7 @@ the scene. So the figures are the stripe centres' own contribution to the 3D err
 calibration and identification.
 
 The last column, ``refined``, is the Gaussian extraction's points re-centred by
-:func:`multislit.slits.refine_centres` (what ``scan_image`` triangulates by default); its
+:func:`multislit.stripes.refine_centres` (what ``scan_image`` triangulates by default); its
 ``ok`` figure is the share of points actually re-centred (the others keep their Gaussian
 centre).
 

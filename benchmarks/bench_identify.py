@@ -12,6 +12,8 @@ their pixel width but lie half as far apart: the 49-slit rig there is as dense a
 full size (the tests use half size for 25 slits and full size for 49).
 
 ``--losses`` adds, per scene, where the coverage is lost (``sim.evaluate.coverage_losses``).
+``--follow-stripe off`` and ``--depth-margin`` run the identification in internal modes the
+library does not offer (upright templates; a limited measuring volume), for comparison.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from multislit.identify import IdentifyParams, identify, prepare_reference
+from multislit.identify import prepare_reference
+from multislit.identify.labelling import _identify
+from multislit.identify.matching import _Options
 from multislit.io import Capture
 from multislit.sim.evaluate import LOSSES, coverage_losses, identification_metrics
 from multislit.sim.rig import RigSpec, dense_rig
@@ -44,14 +48,14 @@ def main() -> None:
     ap.add_argument(
         "--follow-stripe",
         choices=("line", "off"),
-        default=IdentifyParams().follow_stripe,
-        help="how the scan template follows its stripe (IdentifyParams.follow_stripe)",
+        default=_Options().follow_stripe,
+        help="how the scan template follows its stripe (line: the library's)",
     )
     ap.add_argument(
         "--depth-margin",
         type=float,
-        default=IdentifyParams().depth_margin,
-        help="the measuring volume's margin (IdentifyParams.depth_margin; inf: no limit)",
+        default=_Options().depth_margin,
+        help="the measuring volume's margin (inf: no limit, the library's)",
     )
     ap.add_argument(
         "--losses", action="store_true", help="also print where the coverage is lost, per scene"
@@ -61,7 +65,7 @@ def main() -> None:
         ap.error(
             f"--scale must be a positive number (1: 1280x1024, 0.5: half size), got {args.scale}"
         )
-    params = IdentifyParams(follow_stripe=args.follow_stripe, depth_margin=args.depth_margin)
+    options = _Options(follow_stripe=args.follow_stripe, depth_margin=args.depth_margin)
     print(
         f"identification vs truth, camera scale {args.scale}, seed {args.seed}, "
         f"follow_stripe={args.follow_stripe}, depth_margin={args.depth_margin}"
@@ -78,7 +82,7 @@ def main() -> None:
             for p in cap.scans:
                 img = cap.image(p)
                 t = time.perf_counter()
-                ident = identify(img, ref, params)
+                ident = _identify(img, ref, None, options)
                 dt = time.perf_counter() - t
                 truth = np.load(cap.root / "truth" / f"{p.stem}.npz")["slit"]
                 m = identification_metrics(ident, truth)

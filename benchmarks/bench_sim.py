@@ -5,17 +5,25 @@ Run: .venv/bin/python benchmarks/bench_sim.py  (prints a table; median of 3 rend
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
 
 import numpy as np
 
-from multislit.sim.render import camera_rays, render
-from multislit.sim.rig import SimulatedRig
-from multislit.sim.scene import SCENES, make_scene, reference_board, standard_object
+from multislit.sim import (
+    SCENES,
+    SimulatedRig,
+    make_scene,
+    reference_board,
+    render,
+    standard_object,
+)
+from multislit.sim.render import camera_rays
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     rig = SimulatedRig.build()
     camera_rays(rig)  # the per-camera ray table is built once per rig, not per image
     rng = np.random.default_rng(0)

@@ -1,8 +1,8 @@
 """Single-shot pipeline speed per frame at full size (1280x1024), one core.
 
 Stages timed per frame: slit/dot extraction, identification, centre refinement (what
-``scan_image`` does by default, ``ScanParams.refine_centres``), triangulation; the reference is
-prepared beforehand (once per rig). The slit planes and camera for triangulation are the
+``scan_image`` does by default), triangulation; the reference is prepared beforehand (once per
+rig). The slit planes and camera for triangulation are the
 simulator's true models (the timing does not depend on their values). The floor a frame cannot
 beat is one cv2.medianBlur pass over the same frame.
 
@@ -31,11 +31,10 @@ import cv2
 import numpy as np
 
 from multislit.geometry import PinholeCamera
-from multislit.identify import IdentifyParams, identify, prepare_reference, template_size
+from multislit.identify import identify, prepare_reference, template_size
 from multislit.io import Capture
 from multislit.reconstruct import triangulate
-from multislit.sim.rig import RigSpec
-from multislit.sim.simulate import simulate_capture
+from multislit.sim import RigSpec, simulate_capture
 from multislit.stripes import extract_slits, refine_centres
 
 
@@ -52,7 +51,7 @@ def run(num_slits: int, repeat: int, workdir: Path) -> dict:
     cam = PinholeCamera.from_dict(models["camera"])
     planes = np.array(models["projector"]["planes"])
     t0 = time.perf_counter()
-    ref.window_sums(*template_size(ref, IdentifyParams()))
+    ref.window_sums(*template_size(ref))
     ref.dots_transposed()
     precompute_ms = 1e3 * (time.perf_counter() - t0)
     rows = []
@@ -109,9 +108,13 @@ def main() -> None:
         # the BLAS reads its thread count when NumPy is loaded: start again with one thread
         os.environ.update(dict.fromkeys(_ONE_THREAD, "1"))
         os.execv(sys.executable, [sys.executable, *sys.argv])
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--slits", type=int, nargs="+", default=[25, 49])
-    ap.add_argument("--repeat", type=int, default=5)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--slits", type=int, nargs="+", default=[25, 49], help="rigs to time (default 25 49)"
+    )
+    ap.add_argument(
+        "--repeat", type=int, default=5, help="runs per frame; the median is kept (default 5)"
+    )
     args = ap.parse_args()
     cv2.setNumThreads(1)
     with tempfile.TemporaryDirectory() as d:

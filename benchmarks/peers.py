@@ -25,6 +25,15 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+from dot_blocks import match_dots
+from patterns import (
+    PatternProjector,
+    decode_gray_code,
+    gray_code_patterns,
+    prepare_patterns,
+    render_patterns,
+    triangulate_columns,
+)
 
 from multislit.errors import MultislitError
 from multislit.measure import (
@@ -33,18 +42,8 @@ from multislit.measure import (
     probing_error_form,
     probing_error_size,
 )
-from multislit.sim.patterns import (
-    PatternProjector,
-    decode_gray_code,
-    gray_code_patterns,
-    match_dots,
-    prepare_patterns,
-    render_patterns,
-    triangulate_columns,
-)
-from multislit.sim.render import render
-from multislit.sim.rig import RigSpec, SimulatedRig
-from multislit.sim.scene import Scene, large_plane, reference_board, spheres, steps
+from multislit.sim import RigSpec, Scene, SimulatedRig, render
+from multislit.sim.scene import large_plane, reference_board, spheres, steps
 
 EDGE_MM = 5.0
 OUTLIER_MM = 5.0
@@ -152,14 +151,14 @@ def _ours_rig(spec: RigSpec, seed: int = 0) -> tuple:
         import tempfile
         from pathlib import Path
 
-        from multislit.calibrate import run_calibration
+        from multislit.calibrate import calibrate_capture
         from multislit.io import Capture
         from multislit.reconstruct import capture_reference
         from multislit.sim.simulate import simulate_capture
 
         with tempfile.TemporaryDirectory() as tmp:
             cap = Capture.open(simulate_capture(Path(tmp) / "cap", [], spec, seed=seed))
-            cal = run_calibration(cap, source="hand").calibration
+            cal = calibrate_capture(cap, source="hand").calibration
             _OURS_RIGS[spec] = (cal, capture_reference(cap))
     return _OURS_RIGS[spec]
 

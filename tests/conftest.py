@@ -8,9 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from multislit.sim.rig import RigSpec, SimulatedRig
-
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+from multislit.sim import RigSpec, SimulatedRig
 
 
 @pytest.fixture(scope="session")
@@ -36,7 +34,7 @@ def small_rig(small_spec: RigSpec) -> SimulatedRig:
 @pytest.fixture(scope="session")
 def small_capture(tmp_path_factory: pytest.TempPathFactory, small_spec: RigSpec) -> Path:
     """A complete half-size simulated capture: holes plate and steps, seed 3."""
-    from multislit.sim.simulate import simulate_capture
+    from multislit.sim import simulate_capture
 
     out = tmp_path_factory.mktemp("capture") / "cap"
     return simulate_capture(out, ["holes", "steps"], small_spec, seed=3)
@@ -50,7 +48,7 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def scenes_capture(tmp_path_factory: pytest.TempPathFactory, small_spec: RigSpec) -> Path:
     """Half-size capture with the identification scenes (25 slits), seed 11."""
-    from multislit.sim.simulate import simulate_capture
+    from multislit.sim import simulate_capture
 
     out = tmp_path_factory.mktemp("scenes") / "cap"
     return simulate_capture(
@@ -78,10 +76,9 @@ def dense_scenes_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Full-size capture with the identification scenes on the 49-slit rig, seed 11.
 
     Full size, not half: at half size the stripes keep their width but lie half as far apart
-    (as dense as 98 slits). About a minute to build (simulation ~30 s, reference ~16 s).
+    (as dense as 98 slits). About a minute to build: for slow tests only.
     """
-    from multislit.sim.rig import dense_rig
-    from multislit.sim.simulate import simulate_capture
+    from multislit.sim import dense_rig, simulate_capture
 
     out = tmp_path_factory.mktemp("dense_scenes") / "cap"
     return simulate_capture(

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from multislit.errors import MeasurementError, MultislitError
+from multislit.geometry import fit_sphere
 from multislit.measure import (
     AcceptanceRow,
     acceptance_table,
-    fit_sphere,
     flatness_error,
     markdown_table,
     probing_error_form,

@@ -46,10 +46,12 @@ def suite(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     return rows
 
 
+@pytest.mark.slow
 def test_three_artefacts_measured(suite: dict[str, dict]) -> None:
     assert set(suite) == {"PS", "PF", "SD", "F"}
 
 
+@pytest.mark.slow
 def test_sphere_probing_errors(suite: dict[str, dict]) -> None:
     ps, pf = suite["PS"], suite["PF"]
     print(ps, pf)
@@ -60,6 +62,7 @@ def test_sphere_probing_errors(suite: dict[str, dict]) -> None:
     assert 0.0 < pf["value"] < 12.0
 
 
+@pytest.mark.slow
 def test_ball_bar_spacing(suite: dict[str, dict]) -> None:
     sd = suite["SD"]
     print(sd)
@@ -68,6 +71,7 @@ def test_ball_bar_spacing(suite: dict[str, dict]) -> None:
     assert np.isfinite(sd["value"]) and abs(sd["value"]) < 8.0
 
 
+@pytest.mark.slow
 def test_plate_flatness(suite: dict[str, dict]) -> None:
     f = suite["F"]
     print(f)

@@ -1,12 +1,14 @@
-"""Slit labels of the calibration image from stripe order + dots (multislit.calibrate_labels)."""
+"""Slit labels of the calibration image from stripe order + dots (multislit.calibrate.slit_labels)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from multislit.calibrate import rms, run_calibration
-from multislit.calibrate.slit_labels import OrderParams, _run_offsets, _runs, label_by_order
+from multislit.calibrate import calibrate_capture
+from multislit.calibrate.camera import rms
+from multislit.calibrate.slit_labels import label_by_order
+from multislit.identify import OrderParams, row_runs, run_offsets
 from multislit.io import Capture
 
 from .test_calibrate import truth_triangulation
@@ -35,7 +37,7 @@ def order_labels(small_capture):
 
 @pytest.fixture(scope="module")
 def order_result(small_capture):
-    return run_calibration(small_capture, source="auto")
+    return calibrate_capture(small_capture, source="auto")
 
 
 # --------------------------------------------------------------------------- units
@@ -43,17 +45,17 @@ def test_runs_cut_at_hidden_stripes_and_double_detections():
     # one row: stripes every 10 px; the 4th is hidden (gap 20), a double detection at 71
     u = np.array([0, 10, 20, 40, 50, 60, 70, 71, 80, 90, 100], float)
     v = np.zeros_like(u)
-    run, rank = _runs(u, v, np.ones(len(u), bool), OrderParams())
+    run, rank = row_runs(u, v, np.ones(len(u), bool), OrderParams())
     assert run[:3].tolist() == [0, 0, 0] and rank[:3].tolist() == [0, 1, 2]
     assert len(set(run[3:6].tolist())) == 1 and run[3] != run[0]
     assert run[6] == run[7] == -1  # the double detection is left out of the runs
     assert run[8] == run[9] == run[10] != run[3]
     # a spacing that changes (face edge) does not hide a missing stripe
     u = np.array([0, 10, 20, 30, 45, 60, 75], float)  # 10 px, then 15 px: no stripe missing
-    run, _ = _runs(u, np.zeros_like(u), np.ones(len(u), bool), OrderParams())
+    run, _ = row_runs(u, np.zeros_like(u), np.ones(len(u), bool), OrderParams())
     assert len(set(run.tolist())) == 1
     u = np.array([0, 10, 20, 30, 56, 71, 86], float)  # 26 px >= 2 x 10: one hidden
-    run, _ = _runs(u, np.zeros_like(u), np.ones(len(u), bool), OrderParams())
+    run, _ = row_runs(u, np.zeros_like(u), np.ones(len(u), bool), OrderParams())
     assert run[3] != run[4]
 
 
@@ -67,11 +69,12 @@ def test_run_offsets_need_agreement():
         + [2, 3, -1, -1]  # run 2: two votes only
     )
     NONE = np.iinfo(np.intp).min
-    off = _run_offsets(run, rank, vote, np.ones(len(run)), 3, p)
+    off = run_offsets(run, rank, vote, np.ones(len(run)), 3, p)
     assert off.tolist() == [5, NONE, NONE]
 
 
 # --------------------------------------------------------------------------- simulated capture
+@pytest.mark.slow
 def test_labels_are_right(small_capture, order_labels):
     lab = order_labels
     tr = np.load(small_capture / "truth" / "slits.npz")["slit"]
@@ -88,13 +91,15 @@ def test_labels_are_right(small_capture, order_labels):
         assert (lab.slit[lab.face == f] >= 0).mean() > 0.5, (f, lab.stats)
 
 
-def test_run_calibration_uses_order_labels(small_capture, order_result):
+@pytest.mark.slow
+def test_calibrate_uses_order_labels(small_capture, order_result):
     r = order_result
     assert r.source == "auto", r.notes
     assert not any("failed" in n for n in r.notes), r.notes
     assert r.calibration.slit_planes.valid.sum() >= 18
 
 
+@pytest.mark.slow
 def test_order_labelled_planes_triangulate(small_capture, order_result):
     ok_share, err = truth_triangulation(small_capture, order_result.calibration)
     assert ok_share > 0.99

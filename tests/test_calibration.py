@@ -10,31 +10,23 @@ import numpy as np
 import pytest
 
 from multislit.calibrate import (
-    SCHEMA,
     Calibration,
     ProjectorMatrix,
     SlitPlanes,
     calibrate_dlt,
-    decompose_camera,
-    find_marker_corners,
-    fit_projector_matrix,
     fit_slit_planes,
-    points_on_faces,
-    refine_camera,
-    rms,
-    slit_plane_rms,
 )
+from multislit.calibrate.camera import decompose_camera, refine_camera, rms
+from multislit.calibrate.markers import find_marker_corners
+from multislit.calibrate.model import SCHEMA
+from multislit.calibrate.projector import fit_projector_matrix
+from multislit.calibrate.slit_planes import slit_plane_rms
+from multislit.calibrate.slit_points import points_on_faces
 from multislit.errors import CalibrationError, MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, look_at, rvec_from_rotation
 from multislit.io import Face
 
-HEIKKILA = (
-    Path(__file__).resolve().parents[1].parent
-    / "shared"
-    / "data"
-    / "heikkila-3d-rig"
-    / "points.csv"
-)
+HEIKKILA = Path(__file__).resolve().parent / "data" / "heikkila-3d-rig" / "points.csv"
 
 
 # --------------------------------------------------------------------------- synthetic rig
@@ -169,7 +161,7 @@ def test_dlt_degenerate_configurations():
 @pytest.fixture(scope="module")
 def heikkila():
     if not HEIKKILA.is_file():
-        pytest.skip(f"real calibration data not found at {HEIKKILA} (shared/ beside the repo)")
+        pytest.skip(f"real calibration data not found at {HEIKKILA}")
     first = HEIKKILA.read_text().splitlines()[0]
     skip = 0 if first[0].isdigit() or first[0] == "-" else 1  # the file has a header line
     d = np.loadtxt(HEIKKILA, delimiter=",", skiprows=skip)
@@ -252,6 +244,7 @@ def draw_marker(
     return np.clip(np.round(img), 0, 255).astype(np.uint8), c
 
 
+@pytest.mark.slow
 def test_marker_corner_subpixel_accuracy():
     rng = np.random.default_rng(5)
     errs = []
@@ -438,6 +431,7 @@ def test_slits_seen_along_one_line_get_the_plane_through_the_axis():
     assert SlitPlanes.from_json(sp.to_json()).from_axis == (0, 3, 8)
 
 
+@pytest.mark.slow
 def test_line_slits_stay_excluded_when_the_axis_cannot_place_them():
     rng = np.random.default_rng(22)
     planes_true, _, axis = grating_planes(num=9)

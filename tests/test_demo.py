@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from multislit.app.cli import main
 
 
+@pytest.mark.slow
 def test_demo_half_size(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--scale", "0.5", "--json"]) == 0

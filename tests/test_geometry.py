@@ -3,12 +3,17 @@ import pytest
 
 from multislit.errors import MultislitError
 from multislit.geometry import (
+    CircleModel,
+    LineModel,
     MatrixCamera,
     PinholeCamera,
+    PlaneModel,
     camera_from_dict,
+    check_plane,
     fit_plane,
     intersect_rays_planes,
     look_at,
+    ransac,
     rotation_from_rvec,
     rvec_from_rotation,
 )
@@ -113,3 +118,53 @@ def test_intersect_rays_rejects_grazing_rays():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     pts, t = intersect_rays_planes(o, d, np.array([0, 0, 1.0, -500]), min_cos=0.05)
     assert np.allclose(pts[0], [0, 0, 500]) and np.isnan(pts[1]).all()
+
+
+def test_weighted_fit_plane(rng):
+    pts = rng.uniform(-100, 100, (50, 3))
+    pts[:, 2] = 0.1 * pts[:, 0] - 3.0
+    w = rng.uniform(0.5, 2.0, 50)
+    plane, res = fit_plane(pts, weights=w)
+    np.testing.assert_allclose(abs(plane[:3] @ np.array([0.1, 0, -1]) / np.hypot(0.1, 1)), 1)
+    assert np.abs(res).max() < 1e-9
+    # a point with weight 0 does not pull the plane
+    off = np.vstack([pts, [0.0, 0.0, 50.0]])
+    p0, _ = fit_plane(off, weights=np.append(w, 0.0))
+    np.testing.assert_allclose(p0 * np.sign(p0[2]), plane * np.sign(plane[2]), atol=1e-9)
+    with pytest.raises(MultislitError, match="weights are 0"):
+        fit_plane(pts, weights=np.zeros(50))
+    with pytest.raises(MultislitError, match="weights must have shape"):
+        fit_plane(pts, weights=np.ones(3))
+
+
+def test_ransac_plane_line_circle(rng):
+    # plane z = 0 with 30 % outliers: most inliers within the threshold
+    pts = np.column_stack([rng.uniform(-50, 50, (200, 2)), rng.normal(0, 0.01, 200)])
+    pts[:60, 2] += rng.uniform(5, 20, 60)
+    tri = rng.integers(0, 200, size=(200, 3))
+    best = ransac(PlaneModel(), pts, tri, threshold=0.1)
+    assert best is not None and best.score >= 130 and not best.inliers[:60].any()
+    assert abs(abs(best.params[2]) - 1) < 1e-3
+    lmeds = ransac(PlaneModel(), pts, tri, block_elements=1000)  # least median, in blocks
+    assert lmeds is not None and lmeds.inliers is None and lmeds.score < 0.05
+    # group rule: candidates need inliers in two groups
+    groups = (pts[:, 0] > 0).astype(np.int64)
+    assert ransac(PlaneModel(), pts, tri, threshold=0.1, groups=groups).score >= 130
+    # line along x with squared-distance residuals
+    line = np.column_stack([np.linspace(0, 100, 50), np.zeros(50), np.zeros(50)])
+    best = ransac(LineModel(min_length=1.0), line, rng.integers(0, 50, (20, 2)), threshold=1e-6)
+    assert best.score == 50 and abs(abs(best.params[3]) - 1) < 1e-12
+    # circle through triples; all samples degenerate -> None
+    t = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    circ = np.column_stack([3 + 5 * np.cos(t), 5 * np.sin(t)])
+    best = ransac(CircleModel(), circ, [[0, 3, 6], [1, 1, 2]])
+    np.testing.assert_allclose(best.params, [3, 0, 5], atol=1e-12)
+    assert ransac(CircleModel(), circ, [[0, 0, 1]]) is None
+
+
+def test_check_plane():
+    np.testing.assert_allclose(check_plane([0, 0, 2, 4]), [0, 0, 1, 2])
+    with pytest.raises(MultislitError, match="zero normal"):
+        check_plane([0, 0, 0, 1])
+    with pytest.raises(MultislitError, match="my_plane must be a finite"):
+        check_plane([0, 0, 1], "my_plane")

@@ -6,16 +6,15 @@ import numpy as np
 import pytest
 
 from multislit.errors import MeasurementError, MultislitError
-from multislit.measure import (
+from multislit.geometry import (
     CircleFit,
     fit_circle,
     fit_plane_robust,
     from_plane_coords,
-    hole_edges_from_profiles,
-    measure_holes,
     plane_basis,
     project_to_plane,
 )
+from multislit.measure import fit_holes, hole_edges_from_profiles
 
 NOISE = 0.05  # mm, per coordinate
 
@@ -242,7 +241,7 @@ def test_fit_circle_robust_to_10_percent_outliers(centre, diameter):
     assert abs(plain.diameter - diameter) > 0.1  # the outliers do spoil a plain fit
 
 
-# --------------------------------------------------------------------------- measure_holes
+# --------------------------------------------------------------------------- fit_holes
 def _three_holes(rng, spacing=8.0):
     phase = rng.uniform(0, spacing)
     pts, slits, gaps = [], [], []
@@ -260,7 +259,7 @@ def test_measure_holes_separates_three_holes(with_gap):
     p, slit, gap = _three_holes(rng)
     order = rng.permutation(len(p))  # input order must not matter
     p, slit, gap = p[order], slit[order], gap[order]
-    holes = measure_holes(p, PLANE, slit=slit, gap=gap if with_gap else None)
+    holes = fit_holes(p, PLANE, slit=slit, gap=gap if with_gap else None)
     assert len(holes) == 3
     for h, (c, d) in zip(holes, HOLES, strict=True):  # ordered along e1
         assert h.measurable, h.reason
@@ -282,7 +281,7 @@ def test_hole_crossed_by_one_slit_is_not_measurable():
     assert len(q) == 2
     p = np.vstack([p, to3d(q)])
     slit = np.concatenate([slit, s])
-    holes = measure_holes(p, PLANE, slit=slit)
+    holes = fit_holes(p, PLANE, slit=slit)
     assert len(holes) == 4
     last = holes[-1]
     assert not last.measurable and last.n_slits == 1 and "1 slit" in last.reason
@@ -290,7 +289,7 @@ def test_hole_crossed_by_one_slit_is_not_measurable():
     np.testing.assert_allclose(last.centre, to3d(q).mean(axis=0))
     assert last.to_dict()["diameter"] is None
     # without slit labels the point count says it
-    holes = measure_holes(p, PLANE)
+    holes = fit_holes(p, PLANE)
     assert not holes[-1].measurable and "2 edge point" in holes[-1].reason
     assert holes[-1].n_slits is None
 
@@ -301,29 +300,29 @@ def test_hole_seen_on_one_side_only_is_not_measurable():
     keep = q[:, 0] > 0.5
     q, slit = q[keep], slit[keep]
     assert len(np.unique(slit)) >= 3 and len(q) >= 6
-    (hole,) = measure_holes(to3d(q), PLANE, slit=slit, link_distance=40.0)
+    (hole,) = fit_holes(to3d(q), PLANE, slit=slit, link_distance=40.0)
     assert not hole.measurable and "deg of the circle" in hole.reason
-    (hole,) = measure_holes(to3d(q), PLANE, slit=slit, link_distance=40.0, min_arc_deg=90)
+    (hole,) = fit_holes(to3d(q), PLANE, slit=slit, link_distance=40.0, min_arc_deg=90)
     assert hole.measurable and hole.diameter == pytest.approx(30.0, abs=1e-6)
 
 
 def test_measure_holes_with_outliers():
     rng = np.random.default_rng(7)
     p, slit, gap, bad = _hole_points((0.0, 0.0), 100.0, 10.0, rng, outliers=0.10)
-    (hole,) = measure_holes(p, PLANE, slit=slit, gap=gap)
+    (hole,) = fit_holes(p, PLANE, slit=slit, gap=gap)
     assert hole.measurable
     assert hole.n_inliers == hole.n_points - bad.sum()
     assert abs(hole.diameter - 100) < 0.05
 
 
 def test_measure_holes_validation():
-    assert measure_holes(np.zeros((0, 3)), PLANE) == []
+    assert fit_holes(np.zeros((0, 3)), PLANE) == []
     with pytest.raises(MeasurementError, match="plane"):
-        measure_holes(np.zeros((3, 3)), [0, 0, 0, 1])
+        fit_holes(np.zeros((3, 3)), [0, 0, 0, 1])
     with pytest.raises(MeasurementError, match="slit must have shape"):
-        measure_holes(np.zeros((3, 3)), PLANE, slit=[1, 2])
+        fit_holes(np.zeros((3, 3)), PLANE, slit=[1, 2])
     with pytest.raises(MeasurementError, match="min_points"):
-        measure_holes(np.zeros((3, 3)), PLANE, min_points=2)
+        fit_holes(np.zeros((3, 3)), PLANE, min_points=2)
 
 
 # --------------------------------------------------------------------------- profiles
@@ -403,18 +402,18 @@ def test_hole_edges_exact_fractions_hook():
 
 
 def test_hole_edges_noisy_then_measured():
-    """The whole chain: noisy profiles -> edges -> measure_holes on the gap-labelled edges."""
+    """The whole chain: noisy profiles -> edges -> fit_holes on the gap-labelled edges."""
     rng = np.random.default_rng(11)
     p, slit, t, truth = _profiles(rng, noise=NOISE)
     edges = hole_edges_from_profiles(p, slit, t, PLANE)
     assert len(edges) == 2 * sum(1 for tr in truth if tr)
     assert _edge_errors(edges, truth).max() < STEP / 2 + 4 * NOISE
-    (hole,) = measure_holes(edges.points, PLANE, slit=edges.slit, gap=edges.gap)
+    (hole,) = fit_holes(edges.points, PLANE, slit=edges.slit, gap=edges.gap)
     assert hole.measurable
     assert abs(hole.diameter - 50.0) < 0.15
     # the last on-plate samples (f = 0) lie outside the hole: the diameter comes out too large
     e0 = hole_edges_from_profiles(p, slit, t, PLANE, edge_offset=0.0)
-    (h0,) = measure_holes(e0.points, PLANE, slit=e0.slit, gap=e0.gap)
+    (h0,) = fit_holes(e0.points, PLANE, slit=e0.slit, gap=e0.gap)
     assert h0.diameter > hole.diameter + 0.2 * STEP
 
 

@@ -6,10 +6,9 @@ import pytest
 
 from multislit.errors import ReferenceImageError
 from multislit.geometry import PinholeCamera
-from multislit.identify.reference import (
+from multislit.identify import (
     WINDOW_SUMS,
     ReferenceSet,
-    _remap_patches,
     bilinear_patch_moments,
     curve_u,
     intersect_line_curves,
@@ -18,6 +17,7 @@ from multislit.identify.reference import (
     sample_sheared_patches,
     window_sums,
 )
+from multislit.identify.patches import _remap_patches
 from multislit.io import Capture
 
 

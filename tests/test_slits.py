@@ -1,4 +1,4 @@
-"""Tests of multislit.slits on synthetic images rendered here (no simulator needed)."""
+"""Tests of multislit.stripes on synthetic images rendered here (no simulator needed)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from multislit.stripes import (
     CENTRE_METHODS,
     FWHM_PER_SIGMA,
     SlitExtraction,
+    as_image,
     estimate_stripe_width,
     extract_slits,
     find_stripe_centres,
@@ -299,6 +300,15 @@ def test_bad_images_raise(bad):
         extract_slits(bad)
     with pytest.raises(MultislitError):
         separate(bad, 3.0, 2.0)
+    with pytest.raises(ValueError, match="^frame "):
+        as_image(bad, name="frame")
+
+
+def test_as_image_keeps_integer_images_and_converts_the_rest():
+    img = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    assert as_image(img) is img
+    f = as_image(img.astype(np.int32))
+    assert f.dtype == np.float32 and np.array_equal(f, img)
 
 
 def test_bad_parameters_raise():

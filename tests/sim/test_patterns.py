@@ -1,26 +1,28 @@
 """Peer methods in the simulator: pattern projector, Gray codes, dot block matching."""
 
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from multislit.errors import MeasurementError, MultislitError
-from multislit.sim.patterns import (
+from multislit.sim import RigSpec, SimulatedRig, render
+from multislit.sim.scene import large_plane, reference_board, spheres
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from dot_blocks import match_dots, rectified_camera  # noqa: E402
+from patterns import (  # noqa: E402  (the peer methods live with the benchmarks)
     PatternProjector,
     decode_gray_code,
     gray_code_patterns,
-    match_dots,
     n_gray_bits,
     prepare_patterns,
-    rectified_camera,
     render_pattern,
     render_patterns,
     triangulate_columns,
 )
-from multislit.sim.render import render
-from multislit.sim.rig import RigSpec, SimulatedRig
-from multislit.sim.scene import large_plane, reference_board, spheres
 
 
 @pytest.fixture(scope="module")

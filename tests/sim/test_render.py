@@ -101,6 +101,7 @@ def test_shadowed_pixels_get_no_laser_light(clean_spec):
     assert (r.slit.ravel()[shadow_sheet] == -1).all()
 
 
+@pytest.mark.slow
 def test_marker_corners_appear_at_projected_xyz(clean_spec):
     spec = replace(clean_spec, sensor=replace(clean_spec.sensor, blur_sigma_px=1.5, supersample=6))
     rig = SimulatedRig.build(spec)

@@ -46,6 +46,7 @@ def _digest(folder):
     return h.hexdigest()
 
 
+@pytest.mark.slow
 def test_same_seed_same_capture(tmp_path):
     spec = RigSpec().scaled(0.25)
     a = simulate_capture(tmp_path / "a", ["plane"], spec, seed=5)

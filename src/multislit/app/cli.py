@@ -33,9 +33,7 @@ def _progress(prefix: str):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from multislit.sim.rig import RigSpec
-    from multislit.sim.scene import SCENES
-    from multislit.sim.simulate import simulate_capture
+    from multislit.sim import SCENES, RigSpec, simulate_capture
 
     spec = RigSpec.load(args.rig) if args.rig else RigSpec()
     if args.slits:
@@ -61,7 +59,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from multislit.sim.rig import RigSpec
+    from multislit.sim import RigSpec
 
     print(RigSpec().to_json())
     return 0
@@ -80,10 +78,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from multislit.calibrate import format_report, run_calibration, write_calibration
+    from multislit.calibrate import calibrate_capture, format_report, write_calibration
 
     capture = Path(args.capture)
-    result = run_calibration(capture, source=args.source)
+    result = calibrate_capture(capture, source=args.source)
     out = Path(args.output) if args.output else capture / "calibration.json"
     write_calibration(result, out)
     for line in format_report(result):
@@ -120,26 +118,30 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 def cmd_holes(args: argparse.Namespace) -> int:
     from multislit.errors import MeasurementError
-    from multislit.reconstruct import ScanResult, measure_holes_in_scan
+    from multislit.measure import measure_holes, measure_holes_from_points
+    from multislit.reconstruct import ScanResult
 
     src = Path(args.source)
     measurements = {}
     if src.is_dir():
         from multislit.io import Capture
-        from multislit.reconstruct import HOLE_SCAN_PARAMS, load_capture_calibration, scan_capture
+        from multislit.reconstruct import capture_reference, load_capture_calibration
 
         cap = Capture.open(src, require_target=False)
         cal = load_capture_calibration(cap, args.calibration)
-        images = [Path(args.image)] if args.image else None
-        results = scan_capture(cap, calibration=cal, images=images, params=HOLE_SCAN_PARAMS)
-        for name, res in results.items():
-            img = cap.image(images[0] if images else cap.root / "scans" / f"{name}.png")
-            measurements[name] = measure_holes_in_scan(
-                res, image=img, calibration=cal, min_slits=args.min_slits
+        paths = [Path(args.image)] if args.image else list(cap.scans)
+        if not paths:
+            raise MeasurementError(
+                f"no scans to measure: {cap.root / 'scans'} has no *.png images (or give one image)"
+            )
+        ref = capture_reference(cap)
+        for path in paths:
+            measurements[path.stem] = measure_holes(
+                cap.image(path), ref, cal, min_slits=args.min_slits, name=path.stem
             )
     elif src.is_file():
         res = ScanResult.from_ply(src)
-        measurements[src.stem] = measure_holes_in_scan(res, min_slits=args.min_slits)
+        measurements[src.stem] = measure_holes_from_points(res, min_slits=args.min_slits)
     else:
         raise MeasurementError(f"not a PLY file or capture folder: {src}")
     if args.json:
@@ -163,14 +165,14 @@ def cmd_holes(args: argparse.Namespace) -> int:
         if m.method == "geometric":
             print(
                 "  (edges from the points only: the rows left unidentified at each stripe end "
-                "make holes come out too large, by 1-16 mm on the demo's plates; give the "
-                "capture for sub-pixel edges)"
+                "make holes come out too large, by millimetres; give the capture folder for "
+                "sub-pixel edges)"
             )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from multislit.sim.scene import SCENES
+    from multislit.sim import SCENES
 
     p = argparse.ArgumentParser(
         prog="multislit",
@@ -239,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="the paper's experiment end to end on the simulated rig")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     d.add_argument("--scale", type=float, default=1.0, help="camera resolution factor")
     d.add_argument("--json", action="store_true", help="print the figures as JSON")
     d.set_defaults(func=cmd_demo)

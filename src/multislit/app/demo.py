@@ -27,10 +27,12 @@ from typing import Any
 
 import numpy as np
 
+from multislit.calibrate import calibrate_capture, write_calibration
 from multislit.errors import MultislitError
-from multislit.io import Capture
-from multislit.sim.rig import RigSpec
-from multislit.sim.simulate import Progress, simulate_capture
+from multislit.io import Capture, json_safe, write_json
+from multislit.measure import measure_holes
+from multislit.reconstruct import capture_reference
+from multislit.sim import Progress, RigSpec, simulate_capture
 
 #: The paper's Table 1: (name, actual, estimated, error), mm.
 PAPER_TABLE1 = (("D1", 100.0, 99.7, -0.3), ("D2", 50.0, 49.5, -0.5), ("D3", 30.0, 29.9, -0.1))
@@ -101,30 +103,37 @@ def run_demo(
     progress: Progress | None = None,
     figures: bool = True,
 ) -> dict[str, Any]:
-    """Run the demo, writing everything into ``out``; returns the figures and report lines."""
-    from multislit.calibrate import run_calibration, write_calibration
-    from multislit.reconstruct import (
-        HOLE_SCAN_PARAMS,
-        capture_reference,
-        measure_holes_in_scan,
-        scan_image,
-    )
+    """Run the demo, writing everything into ``out``; return its figures and report lines.
 
+    Parameters
+    ----------
+    out : folder for the capture, the PLY files, the figures and ``demo.json`` (created)
+    seed : noise seed of the simulation. Default 0.
+    scale : camera resolution factor, in [0.2, 2] (0.5: 640x512); see :func:`demo_rig`.
+        Default 1.
+    progress : called as ``progress(i, n, name)`` while the capture is simulated. Default None.
+    figures : write the PNG figures (needs matplotlib). Default True.
+
+    Returns
+    -------
+    The contents of ``demo.json``: ``table1`` (one row per hole and scene), ``calibration``,
+    ``scans``, ``time_per_frame_s``, ``timing_s``, ``figures`` and ``report`` (the lines the
+    command line prints). NaN values are None.
+    """
     t_start = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     spec = demo_rig(scale)
-    scenes = list(DEMO_SCENES)
     t0 = time.perf_counter()
     cap_dir = simulate_capture(
-        out / "capture", scenes, spec, seed=seed, progress=progress, overwrite=True
+        out / "capture", list(DEMO_SCENES), spec, seed=seed, progress=progress, overwrite=True
     )
     t_sim = time.perf_counter() - t0
     cap = Capture.open(cap_dir)
     truth = json.loads((cap_dir / "truth" / "models.json").read_text())
 
     t0 = time.perf_counter()
-    calres = run_calibration(cap, source="hand")
+    calres = calibrate_capture(cap, source="hand")
     cal = calres.calibration
     write_calibration(calres, cap_dir / "calibration.json")
     t_cal = time.perf_counter() - t0
@@ -139,112 +148,26 @@ def run_demo(
     for path in cap.scans:
         name = path.stem
         img = cap.image(path)
-        res = scan_image(img, ref, cal, HOLE_SCAN_PARAMS, name=name)
-        res.write_ply(out / f"{name}.ply", comment=f"multislit demo scan {name}")
-        hm = measure_holes_in_scan(res, image=img, calibration=cal)
+        res, hm = _scan_and_measure(img, ref, cal, name, out)
         tr_scene = truth["scenes"][name]
-        pl = np.asarray(tr_scene["plane"], float)
-        d = res.points @ pl[:3] + pl[3]
-        on = np.abs(d) < 5.0
         idt = identification_truth(cap_dir, name, res)
-        scans[name] = {
-            **res.to_dict(),
-            "plate_rms_mm": float(np.sqrt(np.mean(d[on] ** 2))) if on.any() else None,
-            "plate_mean_mm": float(np.mean(d[on])) if on.any() else None,
-            "correct_share": idt["correct"],
-            "identified_share": idt["identified"],
-            "holes": hm.to_dict(),
-        }
-        matched = _match_holes(hm.measurable, tr_scene["holes"])
-        unmeasured = _match_holes([x for x in hm.holes if not x.measurable], tr_scene["holes"])
-        for (label, _actual, p_est, p_err), tr, h, hu in zip(
-            PAPER_TABLE1, tr_scene["holes"], matched, unmeasured, strict=True
-        ):
-            est = None if h is None else float(h.diameter)
-            rows.append(
-                {
-                    "scene": name,
-                    "hole": label,
-                    "actual": float(tr["diameter"]),
-                    "estimated": est,
-                    "error": None if est is None else est - float(tr["diameter"]),
-                    "paper_estimated": p_est,
-                    "paper_error": p_err,
-                    "edge_points": None if h is None else int(h.n_inliers),
-                    "slits": None if h is None else h.n_slits,
-                    "fit_rms_mm": None if h is None else float(h.rms),
-                    "note": ""
-                    if h is not None
-                    else ("not measurable: " + hu.reason if hu is not None else "not found"),
-                }
-            )
+        scans[name] = _scan_summary(res, hm, tr_scene["plane"], idt)
+        rows.extend(_table1_rows(name, hm, tr_scene["holes"]))
         if figures:
-            from multislit.app.figures import (
-                hole_edges_figure,
-                point_cloud_figure,
-                slit_addresses_figure,
-            )
+            figs.update(_scan_figures(out, name, img, res, hm, tr_scene["holes"], cap.num_slits))
 
-            ident = res.identification
-            un = ident.slit < 0
-            if name == "holes":
-                figs["slit_addresses"] = str(
-                    slit_addresses_figure(
-                        img,
-                        ident.u,
-                        ident.v,
-                        ident.slit,
-                        out / "fig23_slit_addresses.png",
-                        title=f"Slit addresses of scan '{name}' (cf. paper Fig. 23); "
-                        "white: not identified",
-                        num_slits=cap.num_slits,
-                        unidentified_uv=np.c_[ident.u[un], ident.v[un]],
-                    )
-                )
-                figs["point_cloud"] = str(
-                    point_cloud_figure(
-                        res.points,
-                        out / "fig28b_point_cloud.png",
-                        title=f"Points of scan '{name}' in the target frame (cf. Fig. 24/28b)",
-                    )
-                )
-            figs[f"hole_edges_{name}"] = str(
-                hole_edges_figure(
-                    hm,
-                    out / f"fig28c_hole_edges_{name}.png",
-                    points=res.points,
-                    title=f"Hole edges of '{name}' and fitted circles (cf. Fig. 28c)",
-                    truth=tr_scene["holes"],
-                )
-            )
-
-    frame_times = [s["seconds"] for s in scans.values()]
     w, h = cap.image_size
-    rep = calres.report()
-    calib = {
-        "source": calres.source,
-        "dlt_rms_px": float(cal.dlt_rms_px),
-        "camera_rms_px": float(cal.camera_rms_px),
-        "slit_plane_rms_median_mm": rep["slit_planes"]["median_rms_mm"],
-        "projector_matrix_rms_median_mm": rep["projector_matrix"]["median_rms_mm"],
-        "markers_used": len(rep["markers"]["used"]),
-    }
     wall = time.perf_counter() - t_start
     spacing = _slit_spacing_on_plate(cal, truth["scenes"]["holes"]["plane"])
     result: dict[str, Any] = {
         "capture": str(cap_dir),
         "image_size": [w, h],
         "num_slits": cap.num_slits,
-        "rig_note": (
-            f"grating pitch {spec.slits.pitch_um:g} um, {cap.num_slits} slits (default "
-            f"{RigSpec().slits.pitch_um:g} um, {RigSpec().slits.num_slits} slits): slits "
-            f"~{spacing:.1f} mm apart on the plate at 0.9 m, so that each hole is crossed by "
-            ">= 3 slits (30 mm hole: at full size); the simulator's holes plate unchanged"
-        ),
-        "calibration": calib,
+        "rig_note": _rig_note(spec, cap.num_slits, spacing),
+        "calibration": _calibration_summary(calres),
         "scans": scans,
         "table1": rows,
-        "time_per_frame_s": float(np.mean(frame_times)),
+        "time_per_frame_s": float(np.mean([s["seconds"] for s in scans.values()])),
         "timing_s": {
             "simulation": round(t_sim, 2),
             "calibration": round(t_cal, 2),
@@ -254,8 +177,133 @@ def run_demo(
         "figures": figs,
     }
     result["report"] = _report_lines(result)
-    (out / "demo.json").write_text(json.dumps(_nan_to_none(result), indent=1))
-    return _nan_to_none(result)
+    write_json(out / "demo.json", result)
+    return json_safe(result)
+
+
+def _scan_and_measure(img: np.ndarray, ref: Any, cal: Any, name: str, out: Path) -> tuple[Any, Any]:
+    """Measure the plate's holes in one image; write the scan they used as ``out/<name>.ply``."""
+    hm = measure_holes(img, ref, cal, name=name)
+    res = hm.scan
+    res.write_ply(out / f"{name}.ply", comment=f"multislit demo scan {name}")
+    return res, hm
+
+
+def _scan_summary(res: Any, hm: Any, plane: list[float], idt: dict[str, float]) -> dict[str, Any]:
+    """One scan's entry in ``demo.json``: the scan, its plate points against the true plane
+    (points within 5 mm of it), its identification against the truth and its holes."""
+    pl = np.asarray(plane, float)
+    d = res.points @ pl[:3] + pl[3]
+    on = np.abs(d) < 5.0
+    return {
+        **res.to_dict(),
+        "plate_rms_mm": float(np.sqrt(np.mean(d[on] ** 2))) if on.any() else None,
+        "plate_mean_mm": float(np.mean(d[on])) if on.any() else None,
+        "correct_share": idt["correct"],
+        "identified_share": idt["identified"],
+        "holes": hm.to_dict(),
+    }
+
+
+def _table1_rows(name: str, hm: Any, true_holes: list[dict]) -> list[dict[str, Any]]:
+    """Table 1 rows of one scan: each true hole with its measurement and the paper's figures."""
+    matched = _match_holes(hm.measurable, true_holes)
+    unmeasured = _match_holes([x for x in hm.holes if not x.measurable], true_holes)
+    rows = []
+    for (label, _actual, p_est, p_err), tr, h, hu in zip(
+        PAPER_TABLE1, true_holes, matched, unmeasured, strict=True
+    ):
+        est = None if h is None else float(h.diameter)
+        rows.append(
+            {
+                "scene": name,
+                "hole": label,
+                "actual": float(tr["diameter"]),
+                "estimated": est,
+                "error": None if est is None else est - float(tr["diameter"]),
+                "paper_estimated": p_est,
+                "paper_error": p_err,
+                "edge_points": None if h is None else int(h.n_inliers),
+                "slits": None if h is None else h.n_slits,
+                "fit_rms_mm": None if h is None else float(h.rms),
+                "note": ""
+                if h is not None
+                else ("not measurable: " + hu.reason if hu is not None else "not found"),
+            }
+        )
+    return rows
+
+
+def _scan_figures(
+    out: Path,
+    name: str,
+    img: np.ndarray,
+    res: Any,
+    hm: Any,
+    true_holes: list[dict],
+    num_slits: int,
+) -> dict[str, str]:
+    """Write one scan's figures (slit addresses and points for the flat plate; hole edges for
+    every scan); return their paths by name."""
+    from multislit.app.figures import hole_edges_figure, point_cloud_figure, slit_addresses_figure
+
+    figs: dict[str, str] = {}
+    ident = res.identification
+    un = ident.slit < 0
+    if name == "holes":
+        figs["slit_addresses"] = str(
+            slit_addresses_figure(
+                img,
+                ident.u,
+                ident.v,
+                ident.slit,
+                out / "fig23_slit_addresses.png",
+                title=f"Slit addresses of scan '{name}' (cf. paper Fig. 23); white: not identified",
+                num_slits=num_slits,
+                unidentified_uv=np.c_[ident.u[un], ident.v[un]],
+            )
+        )
+        figs["point_cloud"] = str(
+            point_cloud_figure(
+                res.points,
+                out / "fig28b_point_cloud.png",
+                title=f"Points of scan '{name}' in the target frame (cf. Fig. 24/28b)",
+            )
+        )
+    figs[f"hole_edges_{name}"] = str(
+        hole_edges_figure(
+            hm,
+            out / f"fig28c_hole_edges_{name}.png",
+            points=res.points,
+            title=f"Hole edges of '{name}' and fitted circles (cf. Fig. 28c)",
+            truth=true_holes,
+        )
+    )
+    return figs
+
+
+def _calibration_summary(calres: Any) -> dict[str, Any]:
+    """The calibration's figures in ``demo.json``: source, camera RMS (px), slit planes (mm)."""
+    cal = calres.calibration
+    rep = calres.report()
+    return {
+        "source": calres.source,
+        "dlt_rms_px": float(cal.dlt_rms_px),
+        "camera_rms_px": float(cal.camera_rms_px),
+        "slit_plane_rms_median_mm": rep["slit_planes"]["median_rms_mm"],
+        "projector_matrix_rms_median_mm": rep["projector_matrix"]["median_rms_mm"],
+        "markers_used": len(rep["markers"]["used"]),
+    }
+
+
+def _rig_note(spec: RigSpec, num_slits: int, spacing: float) -> str:
+    """One line on why the demo's grating differs from the default rig's."""
+    return (
+        f"grating pitch {spec.slits.pitch_um:g} um, {num_slits} slits (default "
+        f"{RigSpec().slits.pitch_um:g} um, {RigSpec().slits.num_slits} slits): slits "
+        f"~{spacing:.1f} mm apart on the plate at 0.9 m, so that each hole is crossed by "
+        ">= 3 slits (30 mm hole: at full size); the simulator's holes plate unchanged"
+    )
 
 
 def _slit_spacing_on_plate(cal: Any, plane: list[float]) -> float:
@@ -273,20 +321,6 @@ def _slit_spacing_on_plate(cal: Any, plane: list[float]) -> float:
     if len(xs) < 2:
         return float("nan")
     return float(np.median(np.linalg.norm(np.diff(xs, axis=0), axis=1)))
-
-
-def _nan_to_none(x: Any) -> Any:
-    if isinstance(x, float):
-        return x if np.isfinite(x) else None
-    if isinstance(x, dict):
-        return {k: _nan_to_none(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_nan_to_none(v) for v in x]
-    if isinstance(x, np.floating):
-        return _nan_to_none(float(x))
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 def _fmt(x: float | None, spec: str = "6.2f") -> str:

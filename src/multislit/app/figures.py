@@ -184,12 +184,12 @@ def hole_edges_figure(
 
     Parameters
     ----------
-    measurement : a :class:`~multislit.scan.HoleMeasurement`
+    measurement : a :class:`~multislit.measure.HoleMeasurement`
     path : PNG to write
     points : (N, 3) mm, the scan's points, drawn faintly (plate points only)
     truth : optional list of {"centre": xyz, "diameter": mm}: the true holes (dashed)
     """
-    from multislit.measure import project_to_plane
+    from multislit.geometry import project_to_plane
 
     pl = np.asarray(measurement.plane, float)
     fig = _figure(10.0, 7.0)

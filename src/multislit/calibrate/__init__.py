@@ -1,103 +1,32 @@
-"""multislit.calibrate."""
+"""multislit.calibrate: camera and projector calibration from a capture folder.
 
-from multislit.calibrate.models import (
-    MAX_AXIS_ANGLE_DEVIATION,
-    MIN_AXIS_LEVER,
-    MIN_AXIS_SLITS,
-    MIN_DLT_POINTS,
-    MIN_PROJECTOR_POINTS,
-    SCHEMA,
-    Calibration,
-    MarkerDetection,
-    ProjectorMatrix,
-    SlitPlanes,
-    calibrate_dlt,
-    common_line,
-    decompose_camera,
-    find_marker_corners,
-    fit_projector_matrix,
-    fit_slit_planes,
-    points_on_faces,
-    refine_camera,
-    rms,
-    slit_plane_rms,
-)
+:func:`calibrate_capture` turns a capture folder into a :class:`CalibrationResult`, whose
+``calibration`` (:class:`Calibration`) the scans use; :func:`write_calibration` saves it with
+its report. The building blocks live in the modules: ``camera`` (DLT and refinement),
+``markers`` (checker corners), ``capture_camera`` (the camera of a capture), ``slit_points``
+and ``slit_labels`` (points on the slits), ``slit_planes`` and ``projector`` (the projector
+models and fits), ``model`` (the calibration file).
+"""
+
+from multislit.calibrate.camera import calibrate_dlt
+from multislit.calibrate.model import Calibration
 from multislit.calibrate.pipeline import (
-    CALIBRATION_EXTRACT,
-    CALIBRATION_REFINE,
-    DEFAULT_EDGE_MARGIN_PX,
-    DEFAULT_OUTLIER_SIGMA,
-    MARKER_OUTLIER_PX,
-    MAX_ALBEDO_VARIATION,
-    MIN_AUTO_POINTS,
     CalibrationResult,
-    CameraCalibration,
-    MarkerResiduals,
-    ProjectorFit,
-    SlitPointSet,
-    auto_fit_problem,
-    auto_slit_points,
-    calibrate_camera_from_capture,
     calibrate_capture,
-    fit_projector,
     format_report,
-    hand_slit_points,
-    refine_camera_with_lines,
-    run_calibration,
-    stripe_lines,
-    transfer_labels,
     write_calibration,
 )
-from multislit.calibrate.slit_labels import (
-    OrderLabels,
-    label_by_order,
-)
+from multislit.calibrate.projector import ProjectorMatrix
+from multislit.calibrate.slit_planes import SlitPlanes, fit_slit_planes
 
 __all__ = [
-    "SCHEMA",
-    "MIN_DLT_POINTS",
-    "MIN_PROJECTOR_POINTS",
-    "calibrate_dlt",
-    "decompose_camera",
-    "refine_camera",
-    "rms",
-    "MarkerDetection",
-    "find_marker_corners",
-    "fit_projector_matrix",
+    "Calibration",
+    "CalibrationResult",
     "ProjectorMatrix",
     "SlitPlanes",
-    "common_line",
-    "fit_slit_planes",
-    "MIN_AXIS_SLITS",
-    "MIN_AXIS_LEVER",
-    "MAX_AXIS_ANGLE_DEVIATION",
-    "slit_plane_rms",
-    "points_on_faces",
-    "Calibration",
-    "CALIBRATION_EXTRACT",
-    "CALIBRATION_REFINE",
-    "DEFAULT_EDGE_MARGIN_PX",
-    "MAX_ALBEDO_VARIATION",
-    "DEFAULT_OUTLIER_SIGMA",
-    "MIN_AUTO_POINTS",
-    "MARKER_OUTLIER_PX",
-    "MarkerResiduals",
-    "CameraCalibration",
-    "calibrate_camera_from_capture",
-    "refine_camera_with_lines",
-    "stripe_lines",
-    "SlitPointSet",
-    "hand_slit_points",
-    "transfer_labels",
-    "auto_slit_points",
-    "ProjectorFit",
-    "fit_projector",
-    "CalibrationResult",
-    "auto_fit_problem",
-    "run_calibration",
     "calibrate_capture",
-    "write_calibration",
+    "calibrate_dlt",
+    "fit_slit_planes",
     "format_report",
-    "OrderLabels",
-    "label_by_order",
+    "write_calibration",
 ]

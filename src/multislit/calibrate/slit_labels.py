@@ -2,8 +2,8 @@
 
 The dot identification (:mod:`multislit.identify`) labels the stripe centres of
 ``calibration/slits.png`` reliably where it labels them, but the target's 45 degree faces
-foreshorten the dot pattern, so it leaves about half of the centres (nearly all of the ramp)
-unlabelled, and the slits then lie on one face each: their planes are undetermined.
+foreshorten the dot pattern, so it leaves many centres (most of the ramp) unlabelled, and the
+slits then lie on one face each: their planes are undetermined.
 
 :func:`label_by_order` uses the order of the stripes instead. The target is concave (two walls
 and a ramp meeting in a corner), so along an image row the stripes on it appear in their slit
@@ -32,15 +32,24 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit.identify.order import OrderParams, _apply, _run_offsets, _runs
+from multislit.calibrate.capture_camera import camera_from_capture
+from multislit.calibrate.slit_points import EXTRACT_OPTIONS, points_on_faces, transfer_labels
+from multislit.geometry.camera import F64
+from multislit.identify import (
+    OrderParams,
+    apply_run_offsets,
+    identify,
+    prepare_reference,
+    row_runs,
+    run_offsets,
+)
 from multislit.io import Capture
-
-F64 = NDArray[np.float64]
+from multislit.stripes import extract_slits
 
 
 @dataclass(frozen=True, eq=False)
 class OrderLabels:
-    """Result of :func:`label_by_order`; accepted as is by the calibration's labeller interface.
+    """Result of :func:`label_by_order`.
 
     u, v : (K,) float64, px, stripe centres (extraction of the calibration settings)
     slit : (K,) int, slit number, -1 where unlabelled
@@ -64,40 +73,33 @@ def _nearest_in_row(u_from: F64, v_from: F64, u: F64, v: F64, tol_px: float) -> 
 
     A point with two candidates within ``tol_px`` gets -1 (ambiguous).
     """
-    from multislit.calibrate.pipeline import transfer_labels
-
     return transfer_labels(u_from, v_from, np.arange(len(u_from)), u, v, tol_px=tol_px)
 
 
 def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
-    from multislit.identify import IdentifyParams, identify, prepare_reference
-
     if reference is None:
         refs = [cap.image(q) for q in cap.references]
         reference = prepare_reference(refs, cap.num_slits, names=[q.name for q in cap.references])
     # the anchors must be the dots' own evidence, not identification's order fill
-    return identify(image, reference, IdentifyParams(order_fill=False))
+    return identify(image, reference, order_fill=False)
 
 
 def _faces(cap: Capture, uv: F64, camera: Any) -> NDArray[np.intp]:
-    from multislit.calibrate.models import points_on_faces
-    from multislit.calibrate.pipeline import calibrate_camera_from_capture
-
     if cap.target is None or not cap.target.faces:
         return np.zeros(len(uv), np.intp)
     if camera is None:
-        camera = calibrate_camera_from_capture(cap, use_stripes=False).refined
+        camera = camera_from_capture(cap, use_stripes=False).from_markers
     return points_on_faces(camera, uv, cap.target.faces)[1]
 
 
 def label_by_order(
     image: NDArray,
     capture: str | Path | Capture,
+    *,
+    camera: Any = None,
     identification: Any = None,
     reference: Any = None,
-    camera: Any = None,
     params: OrderParams | None = None,
-    extract: dict[str, Any] | None = None,
 ) -> OrderLabels:
     """Label the stripe centres of a calibration image by their order in the row and the dots.
 
@@ -105,27 +107,22 @@ def label_by_order(
     ----------
     image : (H, W) the calibration slit image (``calibration/slits.png``)
     capture : capture folder or Capture (references, faces, num_slits)
-    identification : an :class:`~multislit.identify.Identification` of ``image`` (default: made
-        here from the capture's references, or from ``reference``)
-    reference : a prepared :class:`~multislit.reference.ReferenceSet` (default: prepared here)
     camera : a calibrated camera to tell which face each centre is on (default: calibrated here
         from the markers); without target faces all centres count as one surface
-    params : :class:`OrderParams`
-    extract : keyword arguments of :func:`multislit.slits.extract_slits` (default: the
-        calibration's :data:`multislit.calibrate.CALIBRATION_EXTRACT`)
+    identification : an :class:`~multislit.identify.Identification` of ``image`` (default: made
+        here from the capture's references, or from ``reference``)
+    reference : a prepared :class:`~multislit.identify.ReferenceSet` (default: prepared here)
+    params : :class:`~multislit.identify.OrderParams` (default ``OrderParams()``)
 
     Returns
     -------
     OrderLabels (u, v, slit, ...), -1 for centres left unlabelled
     """
-    from multislit.calibrate.pipeline import CALIBRATION_EXTRACT
-    from multislit.stripes import extract_slits
-
     p = params or OrderParams()
     cap = capture if isinstance(capture, Capture) else Capture.open(capture)
     img = np.asarray(image)
     n_slits = int(cap.num_slits)
-    ex = extract_slits(img, **(CALIBRATION_EXTRACT if extract is None else extract))
+    ex = extract_slits(img, **EXTRACT_OPTIONS)
     u, v = np.asarray(ex.u, float), np.asarray(ex.v, float)
     K = len(u)
     sw = ex.stripe_width_px if math.isfinite(ex.stripe_width_px) else 3.0
@@ -143,10 +140,10 @@ def label_by_order(
     dot_conf = np.where(j >= 0, iconf[good][np.maximum(j, 0)], 0.0)
 
     face = _faces(cap, np.stack([u, v], axis=1), camera)
-    run, rank = _runs(u, v, (face >= 0) & (np.asarray(ex.segment) >= 0), p)
+    run, rank = row_runs(u, v, (face >= 0) & (np.asarray(ex.segment) >= 0), p)
     n_runs = int(run.max()) + 1 if (run >= 0).any() else 0
-    offset = _run_offsets(run, rank, dot_slit, dot_conf, n_runs, p)
-    slit = _apply(run, rank, offset, n_slits)
+    offset = run_offsets(run, rank, dot_slit, dot_conf, n_runs, p)
+    slit = apply_run_offsets(run, rank, offset, n_slits)
     n_dots = int((slit >= 0).sum())
 
     # row-to-row propagation into runs the dots left unlabelled
@@ -165,12 +162,12 @@ def label_by_order(
             cur = vote[fi]
             vote[fi] = np.where(cur < 0, cand, np.where((cand >= 0) & (cand != cur), -2, cur))
         vote[vote == -2] = -1
-        new = _run_offsets(run, rank, vote, np.ones(K), n_runs, p)
+        new = run_offsets(run, rank, vote, np.ones(K), n_runs, p)
         took = (new != NONE) & (offset == NONE)
         if not took.any():
             break
         offset = np.where(took, new, offset)
-        slit = _apply(run, rank, offset, n_slits)
+        slit = apply_run_offsets(run, rank, offset, n_slits)
     stats = {
         "centres": K,
         "on faces": int((face >= 0).sum()),

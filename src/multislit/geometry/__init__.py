@@ -1,4 +1,4 @@
-"""multislit.geometry."""
+"""multislit.geometry: cameras, planes and the fitting of planes, lines, circles and spheres."""
 
 from multislit.geometry.camera import (
     Camera,
@@ -6,12 +6,31 @@ from multislit.geometry.camera import (
     PinholeCamera,
     as_points,
     camera_from_dict,
-    fit_plane,
-    intersect_rays_planes,
     look_at,
-    normalize_planes,
     rotation_from_rvec,
     rvec_from_rotation,
+)
+from multislit.geometry.circles import CircleFit, SphereFit, fit_circle, fit_sphere
+from multislit.geometry.fit import (
+    MAD_TO_SIGMA,
+    CircleModel,
+    LineModel,
+    PlaneModel,
+    RansacResult,
+    finite_points,
+    fit_plane,
+    fit_plane_robust,
+    line_rms,
+    ransac,
+)
+from multislit.geometry.planes import (
+    check_plane,
+    from_plane_coords,
+    intersect_rays_planes,
+    normalize_planes,
+    orthonormal_basis,
+    plane_basis,
+    project_to_plane,
 )
 
 __all__ = [
@@ -24,6 +43,24 @@ __all__ = [
     "MatrixCamera",
     "camera_from_dict",
     "normalize_planes",
-    "fit_plane",
+    "check_plane",
     "intersect_rays_planes",
+    "plane_basis",
+    "project_to_plane",
+    "from_plane_coords",
+    "MAD_TO_SIGMA",
+    "fit_plane",
+    "fit_plane_robust",
+    "line_rms",
+    "orthonormal_basis",
+    "CircleFit",
+    "fit_circle",
+    "SphereFit",
+    "fit_sphere",
+    "finite_points",
+    "PlaneModel",
+    "LineModel",
+    "CircleModel",
+    "RansacResult",
+    "ransac",
 ]

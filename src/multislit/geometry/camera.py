@@ -1,4 +1,4 @@
-"""Camera models, planes and rays: the geometry every stage shares.
+"""Camera models and rays: the geometry every stage shares.
 
 Conventions (the capture format's): units mm and px; pixel (u, v) with u right, v down and
 (0, 0) the centre of the top-left pixel (OpenCV's convention). World frame = target frame.
@@ -362,71 +362,3 @@ def camera_from_dict(d: dict[str, Any]) -> PinholeCamera | MatrixCamera:
     if model == "matrix":
         return MatrixCamera.from_dict(d)
     raise MultislitError(f"unknown camera model {model!r} (expected 'pinhole' or 'matrix')")
-
-
-# --------------------------------------------------------------------------- planes
-def normalize_planes(planes: ArrayLike) -> F64:
-    """Planes (N, 4) [nx, ny, nz, d] (n.X + d = 0) scaled to unit normals."""
-    p = as_points(planes, 4, "planes")
-    n = np.linalg.norm(p[:, :3], axis=1, keepdims=True)
-    if np.any(n < 1e-12):
-        raise MultislitError("planes must have non-zero normals")
-    return p / n
-
-
-def fit_plane(points: ArrayLike) -> tuple[F64, F64]:
-    """Total least squares plane through points.
-
-    Parameters
-    ----------
-    points : (N, 3) float64, mm, N >= 3
-
-    Returns
-    -------
-    plane : (4,) float64, unit normal and offset, n.X + d = 0
-    residuals : (N,) float64, mm, signed distances of the points to the plane
-    """
-    p = as_points(points, 3, "points")
-    if len(p) < 3:
-        raise MultislitError(f"fit_plane needs >= 3 points, got {len(p)}")
-    c = p.mean(axis=0)
-    _, s, vt = np.linalg.svd(p - c, full_matrices=False)
-    if s[1] < 1e-9 * max(s[0], 1e-300):
-        raise MultislitError("fit_plane: the points are collinear, no unique plane")
-    n = vt[2]
-    plane = np.append(n, -n @ c)
-    return plane, p @ n + plane[3]
-
-
-def intersect_rays_planes(
-    origins: ArrayLike, directions: ArrayLike, planes: ArrayLike, min_cos: float = 0.0
-) -> tuple[F64, F64]:
-    """Intersect each ray with its own plane.
-
-    Parameters
-    ----------
-    origins, directions : (N, 3) float64, mm / unit
-    planes : (N, 4) float64, unit normals, n.X + d = 0 (or (4,) for one plane shared by all)
-    min_cos : float
-        Rays whose |cos| of the angle to the plane normal is below this are rejected (NaN).
-
-    Returns
-    -------
-    points : (N, 3) float64, mm (NaN where rejected or behind the origin)
-    t : (N,) float64, mm along the ray
-    """
-    o = as_points(origins, 3, "origins")
-    d = as_points(directions, 3, "directions")
-    pl = np.asarray(planes, dtype=np.float64)
-    if pl.ndim == 1:
-        pl = np.broadcast_to(pl, (len(o), 4))
-    pl = as_points(pl, 4, "planes")
-    n = pl[:, :3]
-    denom = np.einsum("ij,ij->i", n, d)
-    num = -(np.einsum("ij,ij->i", n, o) + pl[:, 3])
-    dn = np.linalg.norm(d, axis=1) * np.linalg.norm(n, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = num / denom
-        bad = (np.abs(denom) <= min_cos * dn) | (denom == 0) | (t < 0)
-    t = np.where(bad, np.nan, t)
-    return o + t[:, None] * d, t

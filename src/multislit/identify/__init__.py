@@ -1,49 +1,59 @@
-"""multislit.identify."""
+"""Slit identification: which slit each stripe of a scan is (paper, section 4.2).
 
-from multislit.identify.labelling import (
-    Identification,
-    IdentifyParams,
-    identify,
-    split_at_brightness_steps,
-    template_size,
-)
-from multislit.identify.order import (
-    OrderParams,
-)
-from multislit.identify.reference import (
-    CURVE_DEGREE,
+- :mod:`~multislit.identify.reference`: the reference images of a flat board prepared once
+  per rig (:func:`prepare_reference` -> :class:`ReferenceSet`: a curve per slit, the dot
+  images, the dot projector's epipole);
+- :mod:`~multislit.identify.patches`: bilinear patches and the window sums for their moments;
+- :mod:`~multislit.identify.matching`: scan dot templates matched with the references along
+  the epipolar lines (normalised cross-correlation);
+- :mod:`~multislit.identify.segments`: the stripe segments' points, samples, ends and splits;
+- :mod:`~multislit.identify.order`: the slits' left-to-right order along the image rows;
+- :mod:`~multislit.identify.labelling`: :func:`identify`, votes per segment, confidence,
+  order rules.
+"""
+
+from multislit.identify.labelling import Identification, identify
+from multislit.identify.matching import template_size
+from multislit.identify.order import OrderParams, apply_run_offsets, row_runs, run_offsets
+from multislit.identify.patches import (
     WINDOW_SUMS,
-    ReferenceSet,
     bilinear_patch_moments,
-    curve_du,
-    curve_u,
-    estimate_epipole,
-    intersect_line_curves,
     normalise_patches,
-    prepare_reference,
     sample_patches,
     sample_sheared_patches,
     window_sums,
 )
+from multislit.identify.reference import (
+    CURVE_DEGREE,
+    ReferenceSet,
+    curve_du,
+    curve_u,
+    estimate_epipole,
+    intersect_line_curves,
+    prepare_reference,
+)
+from multislit.identify.segments import split_at_brightness_steps
 
 __all__ = [
+    "row_runs",
+    "run_offsets",
+    "apply_run_offsets",
+    "identify",
+    "Identification",
+    "prepare_reference",
+    "ReferenceSet",
+    "template_size",
+    "split_at_brightness_steps",
+    "OrderParams",
     "CURVE_DEGREE",
+    "curve_u",
+    "curve_du",
+    "intersect_line_curves",
+    "estimate_epipole",
     "sample_patches",
     "sample_sheared_patches",
     "normalise_patches",
     "WINDOW_SUMS",
     "window_sums",
     "bilinear_patch_moments",
-    "curve_u",
-    "curve_du",
-    "intersect_line_curves",
-    "ReferenceSet",
-    "estimate_epipole",
-    "prepare_reference",
-    "OrderParams",
-    "IdentifyParams",
-    "Identification",
-    "template_size",
-    "split_at_brightness_steps",
-    "identify",
 ]

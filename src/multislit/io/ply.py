@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -26,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from multislit import __version__
 from multislit.errors import MultislitError
 from multislit.geometry import as_points
+from multislit.io.jsonio import write_bytes_atomic
 
 __all__ = ["write_ply", "read_ply", "PLY_SCALAR_TYPES"]
 
@@ -79,7 +81,8 @@ def write_ply(
     Parameters
     ----------
     path : str or path-like
-        Output file (overwritten).
+        Output file in an existing folder (replaced whole, or left as it was if the write
+        fails).
     points : (N, 3) float64, mm, target frame
         Must be finite. N may be 0.
     u, v : (N,) float, px, optional
@@ -142,21 +145,23 @@ def write_ply(
     header.append("end_header")
     head = ("\n".join(header) + "\n").encode("ascii", errors="strict")
 
+    data = [head]
+    if binary:
+        rec = np.empty(n, dtype=[(name, "<" + t) for name, t, _ in columns])
+        for name, _, col in columns:
+            rec[name] = col
+        data.append(rec.tobytes())
+    elif n:
+        table = np.stack([col.astype(t).astype(np.float64) for _, t, col in columns], 1)
+        # 9 significant digits round-trip float32 exactly; int32 is exact in float64
+        fmts = ["%.9g" if t == "f4" else "%d" for _, t, _ in columns]
+        buf = io.StringIO()
+        np.savetxt(buf, table, fmt=fmts, delimiter=" ", newline="\n")
+        data.append(buf.getvalue().encode("ascii"))
     try:
-        with open(path, "wb") as f:
-            f.write(head)
-            if binary:
-                rec = np.empty(n, dtype=[(name, "<" + t) for name, t, _ in columns])
-                for name, _, col in columns:
-                    rec[name] = col
-                f.write(rec.tobytes())
-            elif n:
-                table = np.stack([col.astype(t).astype(np.float64) for _, t, col in columns], 1)
-                # 9 significant digits round-trip float32 exactly; int32 is exact in float64
-                fmts = ["%.9g" if t == "f4" else "%d" for _, t, _ in columns]
-                buf = io.StringIO()
-                np.savetxt(buf, table, fmt=fmts, delimiter=" ", newline="\n")
-                f.write(buf.getvalue().encode("ascii"))
+        if not Path(path).parent.is_dir():
+            raise FileNotFoundError(f"no folder {os.fspath(Path(path).parent)!r}")
+        write_bytes_atomic(path, b"".join(data))
     except OSError as exc:
         raise MultislitError(f"cannot write PLY file {os.fspath(path)!r}: {exc}") from exc
 

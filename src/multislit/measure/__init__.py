@@ -1,23 +1,18 @@
-"""multislit.measure."""
+"""multislit.measure: holes in a flat plate and the VDI/VDE 2634 acceptance metrics."""
 
-from multislit.measure.holes import (
-    CircleFit,
+from multislit.measure.edges import (
     EdgePoints,
-    HoleResult,
-    fit_circle,
-    fit_plane_robust,
-    from_plane_coords,
+    HoleEdges,
     hole_edges_from_profiles,
-    measure_holes,
-    plane_basis,
-    project_to_plane,
+    locate_edge_subpixel,
+    subpixel_edges,
 )
+from multislit.measure.hole_fit import HoleResult, fit_holes
+from multislit.measure.holes import HoleMeasurement, measure_holes, measure_holes_from_points
 from multislit.measure.vdi2634 import (
     MAX_EXCLUDE,
     AcceptanceRow,
-    SphereFit,
     acceptance_table,
-    fit_sphere,
     flatness_error,
     markdown_table,
     probing_error_form,
@@ -26,19 +21,17 @@ from multislit.measure.vdi2634 import (
 )
 
 __all__ = [
-    "fit_plane_robust",
-    "plane_basis",
-    "project_to_plane",
-    "from_plane_coords",
-    "CircleFit",
-    "fit_circle",
-    "HoleResult",
     "measure_holes",
+    "measure_holes_from_points",
+    "HoleMeasurement",
+    "HoleResult",
+    "fit_holes",
     "EdgePoints",
+    "HoleEdges",
     "hole_edges_from_profiles",
+    "locate_edge_subpixel",
+    "subpixel_edges",
     "MAX_EXCLUDE",
-    "SphereFit",
-    "fit_sphere",
     "probing_error_form",
     "probing_error_size",
     "sphere_spacing_error",

@@ -26,18 +26,15 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from multislit.errors import MeasurementError, MultislitError
-from multislit.geometry import as_points, fit_plane
+from multislit.geometry import finite_points, fit_plane, fit_sphere
 
 F64 = NDArray[np.float64]
 
 __all__ = [
     "AcceptanceRow",
-    "SphereFit",
     "acceptance_table",
-    "fit_sphere",
     "flatness_error",
     "markdown_table",
     "probing_error_form",
@@ -49,12 +46,7 @@ MAX_EXCLUDE = 0.5  # the guideline itself allows 0.003; larger values are for di
 
 
 def _points(a: ArrayLike, name: str, minimum: int) -> F64:
-    try:
-        p = as_points(a, 3, name)
-    except MultislitError as exc:
-        raise MeasurementError(str(exc)) from exc
-    if not np.all(np.isfinite(p)):
-        raise MeasurementError(f"{name} must be finite (drop NaN/inf rows first)")
+    p = finite_points(a, 3, name)
     if len(p) < minimum:
         raise MeasurementError(f"{name}: need >= {minimum} points, got {len(p)}")
     return p
@@ -78,80 +70,6 @@ def _kept(residuals: F64, exclude: float) -> F64:
 
 def _range(residuals: F64) -> float:
     return float(residuals.max() - residuals.min())
-
-
-# --------------------------------------------------------------------------- spheres
-@dataclass(frozen=True, eq=False)
-class SphereFit:
-    """A least squares sphere (radial distances, radius free).
-
-    Attributes
-    ----------
-    centre : (3,) float64, mm
-    radius : float, mm
-    residuals : (N,) float64, mm
-        Signed radial residuals ``|p - centre| - radius`` (positive outside).
-    rms : float, mm
-        RMS of the residuals.
-    """
-
-    centre: F64
-    radius: float
-    residuals: F64
-    rms: float
-
-    @property
-    def diameter(self) -> float:
-        """Diameter, mm."""
-        return 2.0 * self.radius
-
-
-def fit_sphere(points: ArrayLike) -> SphereFit:
-    """Least squares sphere through points: algebraic start, then geometric least squares.
-
-    The start solves ``|p|^2 = 2 c . p + k`` linearly (on centred points); the geometric fit
-    minimises ``sum (|p - c| - r)^2`` with Levenberg-Marquardt.
-
-    Parameters
-    ----------
-    points : (N, 3) float64, mm, N >= 4, finite, not all in one plane
-
-    Returns
-    -------
-    SphereFit
-
-    Raises
-    ------
-    MeasurementError
-        Fewer than 4 points, non-finite points, or points (nearly) coplanar, so that no sphere
-        is determined.
-    """
-    p = _points(points, "points", 4)
-    mean = p.mean(axis=0)
-    q = p - mean
-    _, s, _ = np.linalg.svd(q, full_matrices=False)
-    if s[0] <= 0 or s[2] <= 1e-6 * s[0]:
-        raise MeasurementError("fit_sphere: the points are (nearly) coplanar, no unique sphere")
-    A = np.column_stack([2.0 * q, np.ones(len(q))])
-    sol, *_ = np.linalg.lstsq(A, (q * q).sum(axis=1), rcond=None)
-    c0 = sol[:3]
-    r0 = float(np.sqrt(max(sol[3] + c0 @ c0, 0.0)))
-    if not np.isfinite(r0) or r0 <= 0:
-        r0 = float(np.linalg.norm(q - c0, axis=1).mean())
-
-    def fun(x: F64) -> F64:
-        return np.linalg.norm(q - x[:3], axis=1) - x[3]
-
-    def jac(x: F64) -> F64:
-        d = q - x[:3]
-        rho = np.maximum(np.linalg.norm(d, axis=1), 1e-300)
-        return np.column_stack([-d / rho[:, None], -np.ones(len(q))])
-
-    res = least_squares(fun, np.array([*c0, r0]), jac=jac, method="lm", xtol=1e-14, ftol=1e-14)
-    centre = res.x[:3] + mean
-    radius = abs(float(res.x[3]))
-    resid = np.linalg.norm(p - centre, axis=1) - radius
-    return SphereFit(centre, radius, resid, float(np.sqrt(np.mean(resid * resid))))
 
 
 def probing_error_form(points: ArrayLike, exclude: float = 0.0) -> float:

@@ -1,18 +1,13 @@
-"""multislit.reconstruct."""
+"""multislit.reconstruct: identified stripe points -> 3D points (triangulation and scans)."""
 
 from multislit.reconstruct.scan import (
     CALIBRATION_FILE,
-    HOLE_SCAN_PARAMS,
-    HoleEdges,
-    HoleMeasurement,
-    ScanParams,
     ScanResult,
     capture_reference,
     load_capture_calibration,
-    locate_edge_subpixel,
-    measure_holes_in_scan,
     scan_capture,
     scan_image,
+    scan_image_for_holes,
 )
 from multislit.reconstruct.triangulation import (
     triangulate,
@@ -23,15 +18,10 @@ __all__ = [
     "triangulate_matrix",
     "triangulate",
     "CALIBRATION_FILE",
-    "ScanParams",
-    "HOLE_SCAN_PARAMS",
     "ScanResult",
     "scan_image",
+    "scan_image_for_holes",
     "load_capture_calibration",
     "capture_reference",
     "scan_capture",
-    "HoleEdges",
-    "HoleMeasurement",
-    "locate_edge_subpixel",
-    "measure_holes_in_scan",
 ]

@@ -15,7 +15,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import MultislitError
-from multislit.geometry.camera import F64, Camera, as_points, intersect_rays_planes
+from multislit.geometry import Camera, as_points, intersect_rays_planes
+
+F64 = NDArray[np.float64]
 
 
 def triangulate_matrix(

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from multislit.errors import MultislitError
+
 
 def _true_centres(truth_slit: NDArray) -> list[tuple[int, float, int]]:
     """(row, column, slit) of every true stripe-centre pixel: the middle of each run (>= 2 px)
@@ -23,15 +25,8 @@ def _true_centres(truth_slit: NDArray) -> list[tuple[int, float, int]]:
     return centres
 
 
-def identification_metrics(ident, truth_slit: NDArray) -> dict:
-    """Score an identification against the simulator's per-pixel truth.
-
-    correct : share of output points whose slit is the true one at their pixel (or a neighbour
-        in the row: a centre can round onto the stripe's edge pixel)
-    wrong_confident : share of output points that are wrong and have confidence >= 0.5
-    coverage : share of true stripe-centre pixels (the middle of each lit run of one slit in a
-        row) that have an output point of that slit within 1.5 px in the same row
-    """
+def _score(ident, truth_slit: NDArray, mask: NDArray | None) -> dict:
+    """Points, correct, wrong (all and at confidence >= 0.5) and coverage, within ``mask``."""
     h, w = truth_slit.shape
     ok = ident.identified
     u, v, k = ident.u[ok], ident.v[ok], ident.slit[ok]
@@ -43,6 +38,11 @@ def identification_metrics(ident, truth_slit: NDArray) -> dict:
     wrong = ~correct & (cand >= 0).any(1)
     hi = ident.confidence[ok] >= 0.5
     centres = _true_centres(truth_slit)
+    if mask is not None:
+        inside = mask[r, np.clip(np.round(u).astype(int), 0, w - 1)]
+        u, v, k = u[inside], v[inside], k[inside]
+        correct, wrong, hi = correct[inside], wrong[inside], hi[inside]
+        centres = [c for c in centres if mask[c[0], min(int(round(c[1])), w - 1)]]
     got = 0
     pts: dict = {}
     for uu, vv, kk in zip(u, np.round(v).astype(int), k, strict=True):
@@ -50,20 +50,63 @@ def identification_metrics(ident, truth_slit: NDArray) -> dict:
     for row, c, lab in centres:
         us = pts.get((row, lab))
         got += bool(us) and min(abs(x - c) for x in us) <= 1.5
-    n = max(int(ok.sum()), 1)
+    n_pts = len(u)
+    n = max(n_pts, 1)
     return {
-        "points": int(ok.sum()),
+        "points": int(n_pts),
         "correct": float(correct.sum() / n),
+        "wrong": float(wrong.sum() / n),
         "wrong_confident": float((wrong & hi).sum() / n),
         "coverage": got / max(len(centres), 1),
+        "centres": len(centres),
     }
+
+
+def identification_metrics(ident, truth_slit: NDArray) -> dict:
+    """Score an identification against the simulator's per-pixel truth.
+
+    correct : share of output points whose slit is the true one at their pixel (or a neighbour
+        in the row: a centre can round onto the stripe's edge pixel)
+    wrong_confident : share of output points that are wrong and have confidence >= 0.5
+    coverage : share of true stripe-centre pixels (the middle of each lit run of one slit in a
+        row) that have an output point of that slit within 1.5 px in the same row
+    """
+    m = _score(ident, truth_slit, None)
+    return {key: m[key] for key in ("points", "correct", "wrong_confident", "coverage")}
+
+
+def object_metrics(ident, truth_slit: NDArray, truth_object: NDArray) -> dict[str, dict]:
+    """:func:`identification_metrics` on the objects and on the backdrop apart.
+
+    Parameters
+    ----------
+    ident : an identification (``u``, ``v``, ``slit``, ``confidence``, ``identified``)
+    truth_slit : (H, W) int, the truth's ``slit`` (-1: no stripe)
+    truth_object : (H, W) bool, the truth's ``object`` (True: an object, False: the backdrop
+        or nothing)
+
+    Returns
+    -------
+    ``{"object": scores, "backdrop": scores}``; each scores dict holds ``points`` (output points
+    whose pixel is in the region), ``correct``, ``wrong`` (points on another slit's stripe, all
+    confidences) and ``wrong_confident`` (those with confidence >= 0.5) as shares of these
+    points, ``coverage`` (share of the region's true stripe-centre pixels with a point of their
+    slit within 1.5 px in the row) and ``centres`` (how many true stripe-centre pixels the
+    region has).
+    """
+    obj = np.asarray(truth_object, bool)
+    if obj.shape != np.shape(truth_slit):
+        raise MultislitError(
+            f"truth_object must have the shape of truth_slit {np.shape(truth_slit)}, got {obj.shape}"
+        )
+    return {"object": _score(ident, truth_slit, obj), "backdrop": _score(ident, truth_slit, ~obj)}
 
 
 #: Why a true stripe-centre pixel has no point of its slit (:func:`coverage_losses`).
 LOSSES = ("covered", "no_centre", "unlinked", "segment_unidentified", "point_left_out", "wrong")
 
 
-def coverage_losses(ident, truth_slit: NDArray) -> dict[str, float]:
+def coverage_losses(ident, truth_slit: NDArray, mask: NDArray | None = None) -> dict[str, float]:
     """Where the coverage of :func:`identification_metrics` is lost.
 
     Each true stripe-centre pixel is put in one class, by the output point nearest it in its
@@ -71,6 +114,13 @@ def coverage_losses(ident, truth_slit: NDArray) -> dict[str, float]:
     ``unlinked`` (a centre in no segment), ``segment_unidentified`` (no point of its segment
     was identified), ``point_left_out`` (its segment was identified, this point not: the rows
     at a segment's ends, or the order check) or ``wrong`` (another slit).
+
+    Parameters
+    ----------
+    ident : an identification (``u``, ``v``, ``slit``, ``confidence``, ``segment``)
+    truth_slit : (H, W) int, the truth's ``slit`` (-1: no stripe)
+    mask : (H, W) bool, only the true stripe-centre pixels in it count (e.g. the truth's
+        ``object``); default all
 
     Returns
     -------
@@ -88,6 +138,9 @@ def coverage_losses(ident, truth_slit: NDArray) -> dict[str, float]:
         by_row[int(rows[order][a])] = order[a:e]
     count = dict.fromkeys(LOSSES, 0)
     centres = _true_centres(truth_slit)
+    if mask is not None:
+        w = truth_slit.shape[1]
+        centres = [c for c in centres if mask[c[0], min(int(round(c[1])), w - 1)]]
     for row, c, lab in centres:
         idx = by_row.get(row, np.zeros(0, int))
         idx = idx[np.abs(ident.u[idx] - c) <= 1.5]

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from multislit.sim.primitives import Scene
 from multislit.sim.rig import SimulatedRig
-from multislit.sim.scene import Scene
 
 F64 = NDArray[np.float64]
 R0 = 900.0  # mm: range at which the laser powers are specified
@@ -33,6 +33,7 @@ class Rendered:
     slit : (H, W) int16: the slit whose sheet lights the pixel's point (within 2 sigma), -1 none
     lit : (H, W) bool: the slit projector sees the point (not in its shadow)
     radiance : (H, W) float32: noise-free radiance before the sensor (full scale = 1)
+    obj : (H, W) int16: index of the scene primitive seen by each pixel (-1: nothing), or None
     """
 
     image: NDArray
@@ -40,6 +41,7 @@ class Rendered:
     slit: NDArray[np.int16]
     lit: NDArray[np.bool_]
     radiance: NDArray[np.float32]
+    obj: NDArray[np.int16] | None = None
 
 
 def _pixel_grid(w: int, h: int) -> F64:
@@ -239,7 +241,14 @@ def render(
     radiance = cv2.GaussianBlur(radiance.astype(np.float32), (0, 0), sensor.blur_sigma_px)
     image = expose(radiance, sensor, rng)
     xyz = hit.point.reshape(h, w, 3).astype(np.float32)
-    return Rendered(image, xyz, slit_k.reshape(h, w).astype(np.int16), lit.reshape(h, w), radiance)
+    return Rendered(
+        image,
+        xyz,
+        slit_k.reshape(h, w).astype(np.int16),
+        lit.reshape(h, w),
+        radiance,
+        obj.astype(np.int16),
+    )
 
 
 def expose(radiance: NDArray, sensor, rng: np.random.Generator) -> NDArray:

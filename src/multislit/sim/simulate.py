@@ -4,6 +4,11 @@ Layout written (see ``docs/capture-format.md``)::
 
     rig.json, target.json, calibration/{markers,slits}.png, reference/ref_DDDD.png,
     scans/<scene>.png, truth/models.json, truth/<image>.npz
+
+Each ``truth/<image>.npz`` holds per pixel ``xyz`` (float32, mm, world; NaN: nothing seen),
+``slit`` (int16, the slit lighting the point, -1: none), ``lit`` (bool, in the slit projector's
+view), ``obj`` (int16, index of the primitive seen, -1: nothing), ``object`` (bool, the surface
+is an object, not the backdrop) and ``names`` (the scene's primitive names, by index).
 """
 
 from __future__ import annotations
@@ -16,9 +21,10 @@ import numpy as np
 
 from multislit.errors import MultislitError
 from multislit.io import Target, write_image, write_rig_json
+from multislit.sim.primitives import Scene
 from multislit.sim.render import Rendered, render
 from multislit.sim.rig import RigSpec, SimulatedRig
-from multislit.sim.scene import Scene, make_scene, reference_board, standard_object
+from multislit.sim.scene import TargetDesign, make_scene, reference_board, standard_object
 
 Progress = Callable[[int, int, str], None]
 
@@ -63,6 +69,50 @@ def _hand_readings(
     return out
 
 
+def _jobs(
+    spec: RigSpec, scene_objs: list[Scene], target_scene: Scene
+) -> tuple[list[tuple[str, Scene, bool]], dict]:
+    """The images to render (name, scene, lasers on) and the reference boards' true planes."""
+    jobs: list[tuple[str, Scene, bool]] = [
+        ("calibration/markers", target_scene, False),
+        ("calibration/slits", target_scene, True),
+    ]
+    ref_planes = {}
+    for dist in spec.reference_distances:
+        sc = reference_board(dist)
+        ref_planes[f"ref_{dist:04.0f}"] = sc.info["plane"]
+        jobs.append((f"reference/ref_{dist:04.0f}", sc, True))
+    for sc in scene_objs:
+        jobs.append((f"scans/{sc.name}", sc, True))
+    return jobs, ref_planes
+
+
+def _check_reference(rig: SimulatedRig, r: Rendered, name: str) -> None:
+    """Raise if a reference image does not show every slit."""
+    seen = np.unique(r.slit[r.slit >= 0])
+    missing = sorted(set(range(rig.projector.num_slits)) - set(seen.tolist()))
+    if missing:
+        raise MultislitError(
+            f"rig design: slit(s) {missing} do not reach the camera's view on the "
+            f"reference board {name}; every reference image must show all slits: "
+            f"narrow the fan (larger slits.pitch_um), aim camera and projector closer, "
+            f"or change reference_distances"
+        )
+
+
+def _save_truth(path: Path, r: Rendered, scene: Scene) -> None:
+    """One image's per-pixel truth (see the module's docstring)."""
+    np.savez_compressed(
+        path,
+        xyz=r.xyz,
+        slit=r.slit,
+        lit=r.lit,
+        obj=r.obj,
+        object=scene.is_object(r.obj),
+        names=np.array(scene.names, dtype=str),
+    )
+
+
 def simulate_capture(
     outdir: str | Path,
     scenes: Sequence[str | Scene] = ("holes",),
@@ -71,17 +121,20 @@ def simulate_capture(
     hand_readings: bool = True,
     progress: Progress | None = None,
     overwrite: bool = False,
+    target: TargetDesign | None = None,
 ) -> Path:
     """Simulate a rig and write a complete capture folder with ground truth.
 
     Parameters
     ----------
     outdir : folder to create (must be empty or absent unless ``overwrite``)
-    scenes : named scenes (``multislit.sim.scene.SCENES``) or Scene objects, one scan each
+    scenes : named scenes (``multislit.sim.SCENES``) or Scene objects, one scan each
     spec : the rig (default: the paper's rig)
     seed : seeds every image's noise; the same seed gives the same images
     hand_readings : add the paper's ``slit_points`` hand readings to target.json
     progress : called as ``progress(i, n, name)`` before each image
+    overwrite : allow writing into a folder that is not empty
+    target : the calibration target's design (default: ``TargetDesign()``)
 
     Returns
     -------
@@ -98,18 +151,8 @@ def simulate_capture(
     names = [s.name for s in scene_objs]
     if len(set(names)) != len(names):
         raise MultislitError(f"scene names must be unique, got {names}")
-    target_scene, markers, faces = standard_object()
-    jobs: list[tuple[str, Scene, bool]] = [
-        ("calibration/markers", target_scene, False),
-        ("calibration/slits", target_scene, True),
-    ]
-    ref_planes = {}
-    for dist in spec.reference_distances:
-        sc = reference_board(dist)
-        ref_planes[f"ref_{dist:04.0f}"] = sc.info["plane"]
-        jobs.append((f"reference/ref_{dist:04.0f}", sc, True))
-    for sc in scene_objs:
-        jobs.append((f"scans/{sc.name}", sc, True))
+    target_scene, markers, faces = standard_object(target or TargetDesign())
+    jobs, ref_planes = _jobs(spec, scene_objs, target_scene)
 
     seeds = np.random.SeedSequence(seed).spawn(len(jobs) + 1)
     truth_dir = out / "truth"
@@ -121,21 +164,11 @@ def simulate_capture(
         r = render(rig, sc, np.random.default_rng(seeds[i]), lasers=lasers)
         write_image(out / f"{name}.png", r.image)
         if lasers:
-            np.savez_compressed(
-                truth_dir / f"{Path(name).name}.npz", xyz=r.xyz, slit=r.slit, lit=r.lit
-            )
+            _save_truth(truth_dir / f"{Path(name).name}.npz", r, sc)
         if name == "calibration/slits":
             rendered_slits = r
         if name.startswith("reference/"):
-            seen = np.unique(r.slit[r.slit >= 0])
-            missing = sorted(set(range(rig.projector.num_slits)) - set(seen.tolist()))
-            if missing:
-                raise MultislitError(
-                    f"rig design: slit(s) {missing} do not reach the camera's view on the "
-                    f"reference board {name}; every reference image must show all slits: "
-                    f"narrow the fan (larger slits.pitch_um), aim camera and projector closer, "
-                    f"or change reference_distances"
-                )
+            _check_reference(rig, r, name)
     if progress:
         progress(len(jobs), len(jobs), "done")
 

@@ -1,29 +1,54 @@
-"""multislit.stripes."""
+"""Separate slits from dots and extract the slit centre lines (paper, section 4.1, Fig. 11).
 
-from multislit.stripes.extraction import (
+For one camera image with many roughly vertical laser stripes (slits) and the random dots
+scattered along them, by stage:
+
+1. :func:`separate` (:mod:`~multislit.stripes.separation`): a running median along each row,
+   wider than a stripe, estimates the background (ambient light, albedo, texture); subtracting
+   it (clipped at 0) leaves the stripes and dots on a flat background (Fig. 11 c). A
+   morphological opening with a vertical line longer than a dot finds the dots, which are
+   refilled by interpolation along the stripe (d); the dots are the difference (e). The stripe
+   and dot sizes that set the filters are estimated from the image
+   (:mod:`~multislit.stripes.sizes`).
+2. :func:`find_stripe_centres` (:mod:`~multislit.stripes.centres`): in every row, each
+   stripe's local maximum above a noise threshold, refined to sub-pixel by a 3-point fit
+   (Gaussian by default); saturated (flat-top) stripes are centred from a Gaussian fit to the
+   unsaturated flanks.
+3. :func:`link_segments` (:mod:`~multislit.stripes.linking`): centre points in consecutive rows
+   are chained into segments, broken at jumps, gaps and ambiguities.
+
+:func:`extract_slits` runs the three steps. After identification, :func:`refine_centres`
+(:mod:`~multislit.stripes.refine`) re-centres the points for triangulation. :func:`as_image`
+is the package's check of a grayscale image argument.
+
+Pixel convention: (u, v), u right (column), v down (row), (0, 0) the centre of the top-left
+pixel. Everything is vectorised over the whole image.
+"""
+
+from multislit.stripes.centres import (
     CENTRE_METHODS,
     DEFAULT_K_SIGMA,
-    DEFAULT_MIN_LENGTH,
     DEFAULT_V_SMOOTH,
-    FWHM_PER_SIGMA,
-    REFINE_STEGER_SCALE,
-    STREAK_ANGLES_DEG,
-    Separation,
-    SlitExtraction,
-    SlitExtractionError,
     StripeCentres,
-    estimate_dot_size,
     estimate_noise,
-    estimate_stripe_width,
-    extract_slits,
     find_stripe_centres,
-    line_kernel,
+)
+from multislit.stripes.linking import (
+    DEFAULT_MIN_LENGTH,
+    SlitExtraction,
+    extract_slits,
     link_segments,
-    median_stride,
-    opening_length,
+)
+from multislit.stripes.refine import (
+    REFINE_STEGER_SCALE,
     refine_centres,
     refine_half_rows,
     refine_slit_image,
+)
+from multislit.stripes.separation import (
+    STREAK_ANGLES_DEG,
+    Separation,
+    line_kernel,
     remove_streaks,
     row_median_background,
     separate,
@@ -31,14 +56,23 @@ from multislit.stripes.extraction import (
     stripe_slope,
     vertical_opening,
 )
+from multislit.stripes.sizes import (
+    FWHM_PER_SIGMA,
+    estimate_dot_size,
+    estimate_stripe_width,
+    median_stride,
+    opening_length,
+)
+from multislit.stripes.validation import SlitExtractionError, as_image
 
 __all__ = [
+    "as_image",
+    "SlitExtractionError",
     "FWHM_PER_SIGMA",
     "CENTRE_METHODS",
     "DEFAULT_K_SIGMA",
     "DEFAULT_MIN_LENGTH",
     "DEFAULT_V_SMOOTH",
-    "SlitExtractionError",
     "Separation",
     "StripeCentres",
     "SlitExtraction",

@@ -1,0 +1,123 @@
+"""Identification on zoo rigs and scenes (drawn at random), scored on the objects apart from the wall.
+
+For each seed: :func:`multislit.sim.simulate_zoo_capture` draws a rig and two scenes and writes
+the capture; the capture is calibrated (:func:`multislit.calibrate.calibrate_capture`; a failure is reported, the
+identification does not need it); the reference is prepared and every scan identified. Per
+scene it prints the object coverage (true stripe-centre pixels on the objects with a point of
+the right slit), the share of points on the objects with a wrong slit (all, and at confidence
+>= 0.5), and the same coverage and wrong share on the backdrop.
+
+Seeds: 0-99 are tuning seeds (look at them while developing); 1000 and above are held out
+(report on them, never tune on them). ``--held-out`` runs seeds 1000, 1001, ...
+
+Run:  .venv/bin/python benchmarks/bench_zoo.py [--seeds 0 1 2] [--held-out] [--size 640 512]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from multislit.calibrate import calibrate_capture
+from multislit.identify import identify, prepare_reference
+from multislit.io import Capture
+from multislit.sim import object_metrics, simulate_zoo_capture
+
+TUNING_SEEDS = (0, 1, 2)
+HELD_OUT_START = 1000
+
+
+def _calibrate(cap: Capture) -> str:
+    """Calibrate; a short report: slits without a plane, or why it failed."""
+    try:
+        res = calibrate_capture(cap)
+    except Exception as exc:  # report every failure, go on with identification
+        return f"failed: {type(exc).__name__}: {str(exc)[:160]}"
+    sp = res.calibration.slit_planes
+    if sp is None:
+        return f"ok ({res.source}), no slit planes"
+    missing = np.flatnonzero(~sp.valid).tolist()
+    return f"ok ({res.source}), slits without a plane: {missing or 'none'} of {sp.num_slits}"
+
+
+def _rig_summary(cap: Capture) -> str:
+    spec = cap.rig.get("simulator", {}).get("rig", {}) if isinstance(cap.rig, dict) else {}
+    cam, slits, dots = spec.get("camera", {}), spec.get("slits", {}), spec.get("dots", {})
+    w, h = cam.get("image_size", cap.image_size)
+    standoff = cam.get("position", [0, 0, 0])[2] - cam.get("look_at", [0, 0, 0])[2]
+    base = abs(slits.get("position", [0])[0] - cam.get("position", [0])[0])
+    return (
+        f"{w}x{h} px, k1 {cam.get('dist', [0])[0]:+.3f}, {slits.get('num_slits')} slits, "
+        f"dots {dots.get('pattern')}, standoff {standoff:.0f} mm, baseline {base:.0f} mm"
+    )
+
+
+def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> None:
+    """Simulate, calibrate and identify one zoo seed; print its rows."""
+    cap = Capture.open(simulate_zoo_capture(folder, seed, scenes=scenes, max_size=size))
+    print(f"\nseed {seed}: {_rig_summary(cap)}")
+    print(f"calibration: {_calibrate(cap)}")
+    ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+    print(
+        "| seed | scene | object coverage | object wrong | object wrong, conf >= 0.5 | "
+        "backdrop coverage | backdrop wrong | ms |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for p in cap.scans:
+        img = cap.image(p)
+        t = time.perf_counter()
+        ident = identify(img, ref)
+        dt = time.perf_counter() - t
+        truth = np.load(cap.root / "truth" / f"{p.stem}.npz")
+        m = object_metrics(ident, truth["slit"], truth["object"])
+        o, b = m["object"], m["backdrop"]
+        print(
+            f"| {seed} | {p.stem} | {100 * o['coverage']:.1f} % | {100 * o['wrong']:.2f} % | "
+            f"{100 * o['wrong_confident']:.2f} % | {100 * b['coverage']:.1f} % | "
+            f"{100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
+        )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog=(
+            f"Tuning seeds: 0-99 (default {' '.join(map(str, TUNING_SEEDS))}). Held-out seeds: "
+            f"{HELD_OUT_START} and above, for reporting only (--held-out)."
+        ),
+    )
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(TUNING_SEEDS))
+    ap.add_argument(
+        "--held-out",
+        type=int,
+        default=0,
+        metavar="N",
+        help=f"run the first N held-out seeds ({HELD_OUT_START}, ...) instead of --seeds",
+    )
+    ap.add_argument(
+        "--size",
+        type=int,
+        nargs=2,
+        default=(640, 512),
+        metavar=("W", "H"),
+        help="largest camera image, px (the rig is scaled down to fit; 1920 1080: full HD)",
+    )
+    ap.add_argument("--scenes", type=int, default=2, help="scenes per seed")
+    ap.add_argument("--keep", type=Path, default=None, help="write the captures here")
+    args = ap.parse_args()
+    seeds = (
+        list(range(HELD_OUT_START, HELD_OUT_START + args.held_out)) if args.held_out else args.seeds
+    )
+    print(f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = args.keep or Path(tmp)
+        for seed in seeds:
+            run_seed(seed, root / f"zoo_{seed}", tuple(args.size), args.scenes)
+
+
+if __name__ == "__main__":
+    main()

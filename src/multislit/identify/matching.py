@@ -1,0 +1,408 @@
+"""Dot templates of a scan matched with the reference dot images (paper, section 4.2).
+
+Sample points are taken along each slit segment of a scan; the dot image around each one (its
+template) is compared by normalised cross-correlation (NCC) with the reference dot images only
+where the point's epipolar line meets each slit's reference curve: N candidates per reference
+image instead of a search over the image. The result is a score per sample and slit, which
+:mod:`~multislit.identify.labelling` turns into votes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from multislit.identify.patches import (
+    bilinear_patch_moments,
+    normalise_patches,
+    sample_patches,
+    sample_sheared_patches,
+)
+from multislit.identify.reference import (
+    ReferenceSet,
+    curve_du,
+    curve_u,
+    intersect_line_curves,
+)
+from multislit.identify.segments import segment_runs
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Template half width across the slit, in reference slit spacings.
+_TEMPLATE_HALF_WIDTH = 0.40
+#: The template's height is chosen to hold about this many dots (from the dot density measured
+#: in the references), between 0.5 and 4 slit spacings.
+_TEMPLATE_DOTS = 12.0
+#: Most sample points whose reference windows are gathered at once when scoring (bounds memory,
+#: not results).
+_CHUNK = 400
+
+
+@dataclass(frozen=True)
+class _Options:
+    """Settings of the identification: the user's (``min_confidence``, ``order_fill``,
+    ``end_order``, see :func:`~multislit.identify.labelling.identify`) and internal modes that
+    tests and benchmarks vary.
+
+    template_half_width : template half width across the slit, in reference slit spacings
+    search_px : the reference patch is also compared at this many px either side of each
+        candidate along the epipolar line (0: at the candidate only)
+    depth_margin : a slit is a hypothesis for a sample only if it lights the sample at a depth
+        within the references' depth span widened by this fraction of it on either side
+        (inf: no depth limit)
+    references : "nearest": each hypothesis is compared in the reference image where its
+        candidate lies nearest the sample (the least deformed dots); "all": in every reference,
+        keeping the best score
+    follow_stripe : "line": the template's rows are shifted so that it follows its stripe's
+        lean (a line fitted to the segment's centres); "off": upright templates
+    coarse_every, keep_hypotheses : coarse to fine: every slit is scored on every
+        ``coarse_every``-th sample of a segment, then on all its samples only the segment's
+        ``keep_hypotheses`` best slits (``coarse_every`` 1: every slit everywhere)
+    """
+
+    min_confidence: float = 0.30
+    order_fill: bool = True
+    end_order: bool = True
+    template_half_width: float = _TEMPLATE_HALF_WIDTH
+    search_px: int = 0
+    depth_margin: float = math.inf
+    references: str = "nearest"
+    follow_stripe: str = "line"
+    coarse_every: int = 1
+    keep_hypotheses: int = 3
+
+    def template_size(self, ref: ReferenceSet) -> tuple[int, int]:
+        """Template half width and half height (px): as wide as a dot band, tall enough for
+        dots."""
+        hw = max(3, int(round(self.template_half_width * ref.spacing_px)))
+        want = _TEMPLATE_DOTS / max(ref.dot_density, 1e-6) / (2 * hw + 1)
+        hh = int(round(np.clip(want / 2, 0.5 * ref.spacing_px, 4.0 * ref.spacing_px)))
+        return hw, max(4, hh)
+
+
+def template_size(reference: ReferenceSet) -> tuple[int, int]:
+    """Half width and half height (px) of the scan templates :func:`identify` matches.
+
+    As wide as a band of dots beside a slit, tall enough to hold a dozen dots (from the dot
+    density measured in the references), between 0.5 and 4 slit spacings.
+
+    Parameters
+    ----------
+    reference : the prepared :class:`~multislit.identify.reference.ReferenceSet`
+
+    Returns
+    -------
+    half_width, half_height : int, px
+    """
+    return _Options().template_size(reference)
+
+
+def template_row_shift(
+    u: F64, v: F64, seg: I64, si: NDArray[np.intp], ref: ReferenceSet, hh: int, mode: str
+) -> F64 | None:
+    """(M, 2*hh+1) px: sideways shift of each template row so that the template follows its
+    stripe (``_Options.follow_stripe``); None for ``mode`` "off".
+
+    A line u = a + s dv is fitted (least squares, all samples at once) to the centres of the
+    sample's segment within +-hh rows; a sample with fewer than 3 such centres, or spanning
+    fewer than 4 rows, keeps an upright template. The reference curves' own slant at the sample
+    (the curve nearest it in the middle reference) is kept in the template.
+    """
+    if mode == "off" or len(si) == 0:
+        return None
+    dy = np.arange(-hh, hh + 1, dtype=np.float64)
+    # the segment's centre in every template row (absent where the segment has no point there)
+    order = segment_runs(seg, v)[0]
+    span = float(np.ceil(v.max()) + 2 * hh + 2)
+    keys = seg[order] * span + np.rint(v[order])
+    want = (seg[si] * span + np.rint(v[si]))[:, None] + dy[None, :]
+    pos = np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)
+    found = keys[pos] == want
+    w = found.astype(np.float64)
+    uu = np.where(found, u[order[pos]] - u[si][:, None], 0.0)
+    n = w.sum(axis=1)
+    sy, syy = w @ dy, w @ (dy * dy)
+    su, suy = uu.sum(axis=1), uu @ dy
+    det = n * syy - sy * sy
+    lo = np.where(found, dy, np.inf).min(axis=1)
+    hi = np.where(found, dy, -np.inf).max(axis=1)
+    use = (n >= 3) & (hi - lo >= min(4.0, hh)) & (det > 0)
+    slope = np.where(use, (n * suy - sy * su) / np.where(use, det, 1.0), 0.0)
+    # the reference curves' slant around the point stays in the template
+    r = ref.curves.shape[0] // 2
+    U = curve_u(ref.curves[r][None, :, :], v[si][:, None])  # (M, N)
+    k = np.argmin(np.abs(U - u[si][:, None]), axis=1)
+    s_ref = np.where(use, curve_du(ref.curves[r, k], v[si]), 0.0)
+    return (slope - s_ref)[:, None] * dy[None, :]
+
+
+def _in_volume(ref: ReferenceSet, uv: F64, margin: float) -> NDArray[np.bool_]:
+    """(M, N) bool: could slit n light sample m at a depth inside the measuring volume?
+
+    In the sample's row, slit n's reference curves span [lo, hi] over the boards' depths; the
+    sample must lie within [lo - margin (hi - lo), hi + margin (hi - lo)].
+    """
+    U = curve_u(ref.curves[:, None, :, :], uv[None, :, 1:2])  # (R, M, N)
+    lo, hi = U.min(axis=0), U.max(axis=0)
+    pad = margin * (hi - lo)
+    u = uv[:, 0:1]
+    return (u >= lo - pad) & (u <= hi + pad)
+
+
+def _candidates(
+    ref: ReferenceSet, uv: F64, lines: F64, hw: int, hh: int, depth_margin: float = np.inf
+) -> tuple[F64, F64]:
+    """Where each sample's epipolar line meets each slit's curve in each reference image.
+
+    Parameters
+    ----------
+    uv : (M, 2) float64, px, sample points
+    lines : (M, 3) float64, their epipolar lines (unit normal)
+    hw, hh : template half sizes, px
+    depth_margin : ``_Options.depth_margin`` (inf: no depth limit)
+
+    Returns
+    -------
+    uu, vv : (R, M, N) float64, px, the intersections; NaN where there is none, where it lies
+        beyond the rows the curve was seen in (+- ``hh``), where the template would leave
+        the image, or where the slit would put the sample outside the measuring volume
+    """
+    w, h = ref.image_size
+    R, N = ref.curves.shape[:2]
+    M = len(uv)
+    vv = np.empty((R, M, N))
+    uu = np.empty((R, M, N))
+    step = max(1, 2**16 // (R * N))  # samples per block: the Newton steps' arrays stay in cache
+    for a in range(0, M, step):
+        sl = slice(a, a + step)
+        vv[:, sl] = intersect_line_curves(
+            lines[None, sl, None, :],
+            ref.curves[:, None, :, :],
+            np.broadcast_to(uv[None, sl, 1:2], (R, len(uv[sl]), N)),
+        )
+        uu[:, sl] = curve_u(ref.curves[:, None, :, :], vv[:, sl])
+    lo = ref.vrange[:, None, :, 0]
+    hi = ref.vrange[:, None, :, 1]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(vv) & (vv >= lo - hh) & (vv <= hi + hh)
+        ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
+    if np.isfinite(depth_margin):
+        ok &= _in_volume(ref, uv, depth_margin)[None]
+    return np.where(ok, uu, np.nan), np.where(ok, vv, np.nan)
+
+
+#: Bytes of reference windows gathered at once when scoring (bounds memory, stays in cache).
+_GATHER_BYTES = 4 << 20
+
+
+def _ncc_at(
+    ref: ReferenceSet,
+    sums: NDArray[np.float32],
+    tmpl: NDArray[np.float32],
+    r: NDArray[np.intp],
+    uu: F64,
+    vv: F64,
+    hw: int,
+    hh: int,
+    max_block: int = 400,
+) -> F64:
+    """NCC of each sample's template with bilinear reference patches at given centres.
+
+    Equal to ``normalise_patches(sample_patches(ref.dots[r], (uu, vv), hw, hh))`` dotted with
+    the template, without sampling the patches: the bilinear patch blends the four integer
+    windows at the corners of its pixel cell, so its dot product with the template is the same
+    blend of the template's dot products with those windows (one matrix product over one
+    gathered window a pixel larger), and its mean and norm follow from the reference's window
+    sums (:func:`~multislit.identify.patches.bilinear_patch_moments`).
+
+    Parameters
+    ----------
+    sums : (R, W', H', 6) float32, ``ref.window_sums(hw, hh)`` (x-major)
+    tmpl : (m, K) float32, normalised templates (:func:`~multislit.identify.patches.normalise_patches`)
+    r : (m, C) intp, reference image of each candidate
+    uu, vv : (m, C) float64, px, patch centres, with the patch inside the image
+    hw, hh : patch half sizes, px
+    max_block : most samples whose windows are gathered at once
+
+    Returns
+    -------
+    ncc : (m, C) float64, 0 for a flat (all equal) reference patch
+    """
+    m, C = r.shape
+    ph, pw = 2 * hh + 1, 2 * hw + 1
+    K = ph * pw
+    if m == 0 or C == 0:
+        return np.zeros((m, C))
+    x, y = uu - hw, vv - hh
+    ws, hs = sums.shape[1:3]  # x-major
+    x0 = np.minimum(np.floor(x), ws - 2).astype(np.intp)
+    y0 = np.minimum(np.floor(y), hs - 2).astype(np.intp)
+    fx, fy = x - x0, y - y0
+    # the template at the four corners of the cell, in a window one pixel larger; a tall patch
+    # is gathered from the transposed images (fewer, longer rows to copy)
+    tall = ph > pw
+    t2 = tmpl.reshape(m, ph, pw)
+    if tall:
+        t2 = t2.transpose(0, 2, 1)
+        src, idx = ref.dots_transposed(), (x0, y0)
+    else:
+        src, idx = ref.dots, (y0, x0)
+    n0, n1 = t2.shape[1:]
+    # corners in the order 00, 10, 01, 11 (x offset, y offset) -> offsets in the window layout
+    corners = [(ox, oy) if not tall else (oy, ox) for ox, oy in ((0, 0), (1, 0), (0, 1), (1, 1))]
+    win = np.lib.stride_tricks.sliding_window_view(src, (n0 + 1, n1 + 1), axis=(1, 2))
+    dots4 = np.empty((m, C, 4), np.float32)
+    step = max(1, min(max_block, _GATHER_BYTES // (C * (n0 + 1) * (n1 + 1) * 4)))
+    t4 = np.zeros((min(step, m), 4, n0 + 1, n1 + 1), np.float32)
+    for a in range(0, m, step):
+        sl = slice(a, a + step)
+        s_ = len(t2[sl])
+        for j, (d1, d0) in enumerate(corners):
+            t4[:s_, j, d0 : d0 + n0, d1 : d1 + n1] = t2[sl]  # (its other cells stay 0)
+        # slit by slit (consecutive samples' windows overlap in memory): (C, s, n0+1, n1+1)
+        g = win[r[sl].T, idx[0][sl].T, idx[1][sl].T]
+        np.matmul(
+            g.reshape(C, s_, -1).transpose(1, 0, 2),
+            t4[:s_].reshape(s_, 4, -1).transpose(0, 2, 1),
+            out=dots4[sl],
+        )
+    num = (1 - fy) * ((1 - fx) * dots4[..., 0] + fx * dots4[..., 1]) + fy * (
+        (1 - fx) * dots4[..., 2] + fx * dots4[..., 3]
+    )
+    # slit by slit: consecutive samples' patches lie close together in the x-major sums
+    s1, s2 = bilinear_patch_moments(sums, x.T.copy(), y.T.copy(), r.T.copy(), x_major=True)
+    s1, s2 = s1.T, s2.T
+    var = s2 - s1 * s1 / K
+    flat = var <= 1e-6 * np.maximum(s2, 1e-12)
+    return np.where(flat, 0.0, num / np.sqrt(np.where(flat, 1.0, var)))
+
+
+def _hypotheses(
+    ref: ReferenceSet,
+    uv: F64,
+    hw: int,
+    hh: int,
+    p: _Options,
+    allowed: NDArray[np.bool_] | None,
+) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
+    """The reference patch centres each sample's hypotheses are compared at.
+
+    Returns
+    -------
+    cu, cv : (M, N, R', O) float64, px, the centres: per sample and slit, in the reference(s)
+        ``p.references`` selects (R' of them), at the ``O = 2 p.search_px + 1`` offsets along
+        the epipolar line
+    rr : (M, N, R', O) intp, the reference image of each centre
+    ok : (M, N, R', O) bool, where the centre is a candidate
+    valid_any : (M, N) bool, the hypotheses with a candidate in any reference (and allowed)
+    """
+    R, N = ref.curves.shape[:2]
+    M = len(uv)
+    offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
+    lines = ref.epipolar_lines(uv)  # (M, 3), unit normal (a, b)
+    direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
+    uu_all, vv_all = _candidates(ref, uv, lines, hw, hh, p.depth_margin)  # (R, M, N)
+    valid_any = np.isfinite(vv_all).any(axis=0)
+    if allowed is not None:
+        valid_any &= allowed
+    if p.references == "nearest":
+        # compare each hypothesis in the reference where its candidate lies nearest the
+        # scan point: the board depth closest to the surface's, the least deformed dots
+        disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
+        r_sel = np.argmin(np.where(np.isfinite(disp), disp, np.inf), axis=0)[:, :, None]
+    else:
+        r_sel = np.broadcast_to(np.arange(R)[None, None, :], (M, N, R))
+    ii = np.arange(M)[:, None, None]
+    kk = np.arange(N)[None, :, None]
+    cu = uu_all[r_sel, ii, kk]  # (M, N, R') candidate centres
+    cv = vv_all[r_sel, ii, kk]
+    ok = np.isfinite(cv) & valid_any[:, :, None]
+    # search along the epipolar line: (M, N, R', O)
+    cu = cu[..., None] + offs * direction[:, None, None, 0:1]
+    cv = cv[..., None] + offs * direction[:, None, None, 1:2]
+    rr = np.broadcast_to(r_sel[..., None], cu.shape)
+    ok = np.broadcast_to(ok[..., None], cu.shape)
+    return cu, cv, rr, ok, valid_any
+
+
+def score_candidates(
+    ref: ReferenceSet,
+    scan_dots: NDArray,
+    pu: F64,
+    pv: F64,
+    p: _Options,
+    allowed: NDArray[np.bool_] | None = None,
+    row_shift: F64 | None = None,
+) -> F64:
+    """NCC of each sample's template at each slit's epipolar intersection.
+
+    Parameters
+    ----------
+    ref : the prepared references
+    scan_dots : (H, W) float32, the scan's dot image
+    pu, pv : (M,) float64, px, the sample points
+    p : the template size and matching modes
+    allowed : (M, N) bool, the hypotheses scored per sample (others stay NaN); default all
+    row_shift : (M, 2*hh+1) float64, px, sideways shift of the template's rows
+        (:func:`template_row_shift`); default upright templates
+
+    Returns
+    -------
+    scores : (M, N) float64, the best NCC per sample and slit; NaN where the slit has no
+        candidate or the template is flat (no dots around the sample)
+    """
+    N = ref.curves.shape[1]
+    w, h = ref.image_size
+    hw, hh = p.template_size(ref)
+    M = len(pu)
+    scores = np.full((M, N), np.nan)
+    if M == 0:
+        return scores
+    sums = ref.window_sums(hw, hh)
+    uv = np.c_[pu, pv]
+    cu, cv, rr, ok, valid_any = _hypotheses(ref, uv, hw, hh, p, allowed)
+    # a patch shifted off the image is zero-padded: sample it directly (rare)
+    with np.errstate(invalid="ignore"):
+        inside = (cu >= hw) & (cu <= w - 1 - hw) & (cv >= hh) & (cv <= h - 1 - hh)
+    direct = ok & ~inside
+    fast = ok & inside
+    shape = cu.shape
+    if row_shift is None:
+        patches = sample_patches(scan_dots, uv, hw, hh)
+    else:
+        patches = sample_sheared_patches(scan_dots, uv, hw, hh, row_shift)
+    tmpl = normalise_patches(patches)  # (M, K)
+    rr_f = np.where(fast, rr, 0).reshape(M, -1)
+    cu_f = np.where(fast, cu, hw).reshape(M, -1)
+    cv_f = np.where(fast, cv, hh).reshape(M, -1)
+    sc = np.full(shape, -np.inf)
+    sc_flat = sc.reshape(M, -1)
+    fast_flat = fast.reshape(M, -1)
+    n_max = int(fast_flat.sum(axis=1).max())
+    if n_max == fast_flat.shape[1]:
+        sc_flat[:] = _ncc_at(ref, sums, tmpl, rr_f, cu_f, cv_f, hw, hh, _CHUNK)
+    elif n_max > 0:
+        # few hypotheses per sample (coarse to fine, missing candidates): score only those,
+        # packed to the front of each sample's row
+        cols = np.argsort(~fast_flat, axis=1, kind="stable")[:, :n_max]
+        packed = [np.take_along_axis(a, cols, axis=1) for a in (rr_f, cu_f, cv_f)]
+        scored = _ncc_at(ref, sums, tmpl, *packed, hw, hh, _CHUNK)
+        np.put_along_axis(sc_flat, cols, scored, axis=1)
+    sc_flat[~fast_flat] = -np.inf
+    if direct.any():
+        di = np.nonzero(direct)
+        for r in np.unique(rr[di]):
+            sel = tuple(q[rr[di] == r] for q in di)
+            pat = normalise_patches(sample_patches(ref.dots[r], np.c_[cu[sel], cv[sel]], hw, hh))
+            sc[sel] = np.einsum("ij,ij->i", pat, tmpl[sel[0]])
+    best = sc.reshape(M, N, -1).max(axis=2)
+    blk = np.where(valid_any & np.isfinite(best), best, np.nan)
+    # a flat template (no dots around the point) says nothing
+    flat = ~np.any(tmpl != 0, axis=1)
+    blk[flat] = np.nan
+    scores[:] = blk
+    return scores

@@ -1,0 +1,299 @@
+"""Sub-pixel stripe centres in every row of a slit image (paper, section 4.1)."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from multislit.stripes.separation import mask_runs
+from multislit.stripes.sizes import FWHM_PER_SIGMA
+from multislit.stripes.validation import (
+    SlitExtractionError,
+    as_image,
+    positive_px,
+    smoothing_taps,
+)
+
+F64 = NDArray[np.float64]
+
+#: Sub-pixel centre methods of :func:`find_stripe_centres`; the first is the default.
+CENTRE_METHODS = ("gaussian", "parabolic", "centroid", "steger")
+#: Default detection threshold in units of the highpass noise sigma. The slit image's background
+#: is an opening of clipped noise, which almost never exceeds ~1.5 sigma; stripe pixels carry
+#: several times more (shot) noise than the background, so the threshold is set well above it.
+DEFAULT_K_SIGMA = 8.0
+#: Default number of rows (binomial weights) averaged along the stripe for the sub-pixel fit.
+DEFAULT_V_SMOOTH = 5
+
+
+class StripeCentres(NamedTuple):
+    """Result of :func:`find_stripe_centres`: K centre points, sorted by (v, u).
+
+    Attributes
+    ----------
+    u : (K,) float64, sub-pixel column of the stripe centre (px)
+    v : (K,) float64, row (px, integer valued)
+    peak : (K,) float64, slit-image value at the peak pixel (intensity units); for saturated
+        stripes the largest value of the flat top
+    width : (K,) float64, stripe FWHM along the row (px) from the Gaussian fit; NaN where the
+        fit is not possible (non-positive neighbour)
+    """
+
+    u: F64
+    v: F64
+    peak: F64
+    width: F64
+
+
+def estimate_noise(image: ArrayLike) -> float:
+    """Robust noise sigma of an image (intensity units) from horizontal first differences.
+
+    sigma = 1.4826 * MAD(diff) / sqrt(2); stripes and dots are a minority of the pixels. For a
+    raw or highpass image; on a slit image (mostly exact zeros) it returns the quantisation /
+    residual level only, so prefer the highpass noise that :func:`extract_slits` uses.
+    """
+    img = as_image(image)
+    d = np.diff(img[::2].astype(np.float32), axis=1)
+    med = np.median(d)
+    sigma = 1.4826 * float(np.median(np.abs(d - med))) / math.sqrt(2.0)
+    if np.issubdtype(img.dtype, np.integer):
+        sigma = max(sigma, 1.0 / math.sqrt(12.0))
+    return sigma
+
+
+def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 1) -> F64:
+    """Values img[r, c + offsets] as (K, len(offsets)) float64, averaged over ``taps`` rows.
+
+    With ``taps`` > 1 (odd), each value is a binomial-weighted average over rows r - taps // 2
+    .. r + taps // 2 (clamped to the image): smoothing along the stripe, which for a straight,
+    tilted stripe keeps the row's profile symmetric about its centre and divides the noise.
+    """
+    h, w = img.shape
+    cols = np.clip(c[:, None] + offsets[None, :], 0, w - 1)
+    if taps <= 1:
+        return img[r[:, None], cols].astype(np.float64)
+    half = taps // 2
+    wts = np.array([math.comb(taps - 1, i) for i in range(taps)], np.float64) / 2.0 ** (taps - 1)
+    out = np.zeros(cols.shape, np.float64)
+    for i, dv in enumerate(range(-half, half + 1)):  # loop over the few taps only
+        rows = np.clip(r + dv, 0, h - 1)
+        out += wts[i] * img[rows[:, None], cols]
+    return out
+
+
+def _three_point(a: F64, b: F64, c: F64, method: str) -> tuple[F64, F64]:
+    """Sub-pixel offset and FWHM from three samples at -1, 0, +1 (b the maximum)."""
+    ok = (a > 0) & (c > 0) & (b > 0)
+    la = np.log(np.where(ok, a, 1.0))
+    lb = np.log(np.where(ok, b, 1.0))
+    lc = np.log(np.where(ok, c, 1.0))
+    den_g = la - 2 * lb + lc
+    ok &= den_g < 0
+    width = np.where(ok, FWHM_PER_SIGMA * np.sqrt(-1.0 / np.where(ok, den_g, -1.0)), np.nan)
+    den_p = a - 2 * b + c
+    delta_p = np.where(den_p < 0, 0.5 * (a - c) / np.where(den_p < 0, den_p, -1.0), 0.0)
+    if method == "gaussian":
+        delta_g = 0.5 * (la - lc) / np.where(ok, den_g, -1.0)
+        delta = np.where(ok, delta_g, delta_p)  # parabola where the log is undefined
+    else:
+        delta = delta_p
+    return np.clip(delta, -0.5, 0.5), width
+
+
+def _window_offset(
+    img: NDArray, r: NDArray, c: NDArray, method: str, fwhm: float, taps: int
+) -> tuple[F64, F64]:
+    """Sub-pixel offset by centre of mass or Steger's derivative ratio over a window."""
+    sigma = fwhm / FWHM_PER_SIGMA
+    if method == "centroid":
+        # centre of mass over +-1.5 sigma (~ the part above 1/3 of the peak), background ~ 0
+        rad = max(1, round(1.5 * sigma))
+        x = np.arange(-rad, rad + 1)
+        p = np.maximum(_gather(img, r, c, x, taps), 0.0)
+        s = p.sum(1)
+        delta = np.where(s > 0, (p @ x) / np.where(s > 0, s, 1.0), 0.0)
+    else:  # steger: zero of the first derivative of the Gaussian-smoothed profile
+        # smoothing sigma_s = w / sqrt(3) with w the half-width ~ sigma * sqrt(3) (Steger 1998)
+        ss = max(sigma, 0.7)
+        rad = math.ceil(3 * ss)
+        x = np.arange(-rad, rad + 1)
+        g = np.exp(-0.5 * (x / ss) ** 2)
+        k1 = -x / ss**2 * g
+        k2 = (x * x / ss**4 - 1 / ss**2) * g
+        p = _gather(img, r, c, x, taps)
+        g1, g2 = -(p @ k1), p @ k2  # correlation with g' = minus the convolution
+        delta = np.where(g2 < 0, -g1 / np.where(g2 < 0, g2, -1.0), 0.0)
+    return np.clip(delta, -1.0, 1.0), np.full(r.shape, np.nan)
+
+
+def _saturated_centres(
+    slit: NDArray, sat: NDArray[np.bool_]
+) -> tuple[F64, F64, F64, F64, NDArray[np.bool_]]:
+    """Centres of saturated runs: weighted log-parabola fit to 2 unsaturated pixels per flank.
+
+    Returns u, v, peak, width of every run and the (H, W) mask of pixels within 1 px of a run
+    (no ordinary peak is taken there).
+    """
+    h, w = sat.shape
+    m = np.zeros((h, w + 2), np.int8)
+    m[:, 1:-1] = sat
+    d = np.diff(m, axis=1)
+    rs, c0, c1 = mask_runs(d)
+    c1 = c1 - 1
+    near = cv2.dilate(sat.view(np.uint8), np.ones((1, 3), np.uint8)).view(bool)
+    if rs.size == 0:
+        e = np.empty(0)
+        return e, e, e, e, near
+    mid = 0.5 * (c0 + c1)
+    x = np.stack([c0 - 2, c0 - 1, c1 + 1, c1 + 2], axis=1).astype(np.float64)
+    inside = (x >= 0) & (x <= w - 1)
+    xi = np.clip(x, 0, w - 1).astype(np.intp)
+    y = slit[rs[:, None], xi].astype(np.float64)
+    ok = inside & (y > 0) & ~sat[rs[:, None], xi]
+    wt = np.where(ok, y * y, 0.0)  # var(log y) ~ sigma^2 / y^2
+    ly = np.log(np.where(ok, y, 1.0))
+    xr = x - mid[:, None]
+    basis = np.stack([np.ones_like(xr), xr, xr * xr], axis=2)  # (K, 4, 3)
+    ata = np.einsum("kn,kni,knj->kij", wt, basis, basis)
+    atb = np.einsum("kn,kni,kn->ki", wt, basis, ly)
+    usable = (ok[:, :2].sum(1) >= 1) & (ok[:, 2:].sum(1) >= 1) & (ok.sum(1) >= 3)
+    ata[~usable] = np.eye(3)
+    coef = np.linalg.solve(ata, atb[..., None])[..., 0]
+    cc = coef[:, 2]
+    good = usable & (cc < 0)
+    off = np.where(good, -coef[:, 1] / (2 * np.where(good, cc, -1.0)), 0.0)
+    half = 0.5 * (c1 - c0) + 0.5
+    good &= np.abs(off) <= half  # the centre must lie on the flat top
+    u = mid + np.where(good, off, 0.0)  # else the run midpoint
+    width = np.where(good, FWHM_PER_SIGMA * np.sqrt(-0.5 / np.where(good, cc, -1.0)), np.nan)
+    # peak: the highest slit value on the run (runs are short: gather up to the longest)
+    offs = np.arange(int((c1 - c0).max()) + 1)
+    cols = np.minimum(c0[:, None] + offs[None, :], c1[:, None])
+    peak = slit[rs[:, None], cols].astype(np.float64).max(1)
+    return u, rs.astype(np.float64), peak, width, near
+
+
+def find_stripe_centres(
+    slit_image: ArrayLike,
+    noise_sigma: float | None = None,
+    method: str = "gaussian",
+    *,
+    k_sigma: float = DEFAULT_K_SIGMA,
+    saturated: ArrayLike | None = None,
+    stripe_width_px: float | None = None,
+    v_smooth: int = DEFAULT_V_SMOOTH,
+) -> StripeCentres:
+    """Sub-pixel centre of every stripe in every row of a slit image.
+
+    A peak is a pixel greater than its left and not less than its right neighbour (one pixel
+    per 2-pixel tie) and above ``k_sigma * noise_sigma``. Its sub-pixel column is refined by
+    ``method``:
+
+    - ``"gaussian"`` (default): parabola through the logs of the 3 samples (exact for a
+      Gaussian profile; falls back to the parabola where a neighbour is <= 0);
+    - ``"parabolic"``: parabola through the 3 samples;
+    - ``"centroid"``: centre of mass over +-1.5 sigma of the stripe;
+    - ``"steger"``: zero of the derivative of the Gaussian-smoothed row profile (Steger).
+
+    Runs of ``saturated`` pixels give one centre each, from a weighted Gaussian fit to the two
+    unsaturated pixels on each flank (the run midpoint if the fit fails).
+
+    Parameters
+    ----------
+    slit_image : (H, W) slit image (e.g. :attr:`Separation.slits`), background ~ 0
+    noise_sigma : noise sigma of the highpass image (intensity units); default
+        :func:`estimate_noise` of ``slit_image`` (prefer passing the highpass noise)
+    method : one of :data:`CENTRE_METHODS`
+    k_sigma : detection threshold in noise sigmas
+    saturated : (H, W) bool mask of saturated stripe pixels (:attr:`Separation.saturated`)
+    stripe_width_px : stripe FWHM (px) for ``centroid``/``steger``; default the median
+        Gaussian-fit width of the peaks
+
+    Returns
+    -------
+    StripeCentres
+        (u, v, peak, width), each (K,) float64, sorted by (v, u).
+    """
+    s = as_image(slit_image, name="slit_image")
+    if method not in CENTRE_METHODS:
+        raise SlitExtractionError(f"method must be one of {CENTRE_METHODS}, got {method!r}")
+    if noise_sigma is None:
+        noise_sigma = estimate_noise(s)
+    noise_sigma = float(noise_sigma)
+    if not math.isfinite(noise_sigma) or noise_sigma < 0:
+        raise SlitExtractionError(f"noise_sigma must be >= 0, got {noise_sigma}")
+    if not math.isfinite(k_sigma) or k_sigma < 0:
+        raise SlitExtractionError(f"k_sigma must be >= 0, got {k_sigma}")
+    sw = positive_px(stripe_width_px, "stripe_width_px")
+    if saturated is None:
+        sat = np.zeros(s.shape, bool)
+    else:
+        sat = np.asarray(saturated, dtype=bool)
+        if sat.shape != s.shape:
+            raise SlitExtractionError(
+                f"saturated must have the slit image's shape {s.shape}, got {sat.shape}"
+            )
+    return find_centres_validated(
+        s, noise_sigma * k_sigma, method, sat, sw, smoothing_taps(v_smooth)
+    )
+
+
+def find_centres_validated(
+    s: NDArray,
+    threshold: float,
+    method: str,
+    sat: NDArray[np.bool_],
+    sw: float | None,
+    taps: int = 1,
+) -> StripeCentres:
+    h, w = s.shape
+    if w < 3:
+        e = np.empty(0)
+        return StripeCentres(e, e, e, e)
+    mid = s[:, 1:-1]
+    thr = math.floor(threshold) if np.issubdtype(s.dtype, np.integer) else threshold
+    is_max = (mid > s[:, :-2]) & (mid >= s[:, 2:]) & (mid > thr)
+    su, sv, speak, swidth, near = _saturated_centres(s, sat)
+    if sv.size:
+        is_max &= ~near[:, 1:-1]
+    r, c = np.nonzero(is_max)
+    c = c + 1
+    # smoothed samples at c-2 .. c+2; re-centre on the smoothed maximum among c-1 .. c+1
+    vals = _gather(s, r, c, np.arange(-2, 3), taps)
+    j = 1 + np.argmax(vals[:, 1:4], axis=1)
+    k = np.arange(r.size)
+    c = c + (j - 2)
+    a, b, cc = vals[k, j - 1], vals[k, j], vals[k, j + 1]
+    delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
+    if method in ("centroid", "steger"):
+        fwhm = sw if sw is not None else float(np.nanmedian(width)) if r.size else 3.0
+        if not math.isfinite(fwhm):
+            fwhm = 3.0
+        delta, _ = _window_offset(s, r, c, method, fwhm, taps)
+    u = c + delta
+    v = r.astype(np.float64)
+    if sv.size:
+        keep = speak > thr
+        u = np.concatenate([u, su[keep]])
+        v = np.concatenate([v, sv[keep]])
+        b = np.concatenate([b, speak[keep]])
+        width = np.concatenate([width, swidth[keep]])
+        order = np.lexsort((u, v))
+        u, v, b, width = u[order], v[order], b[order], width[order]
+    # one stripe, one centre: a dot or speckle on a stripe's flank can make a second local
+    # maximum a px or two away; of two centres closer than half a stripe width keep the stronger
+    min_sep = 0.5 * (sw if sw is not None and math.isfinite(sw) else 3.0)
+    for _ in range(3):
+        close = (v[1:] == v[:-1]) & (u[1:] - u[:-1] < min_sep)
+        if not close.any():
+            break
+        i = np.flatnonzero(close)
+        weaker = np.where(b[i] < b[i + 1], i, i + 1)
+        keep = np.ones(len(u), bool)
+        keep[weaker] = False
+        u, v, b, width = u[keep], v[keep], b[keep], width[keep]
+    return StripeCentres(u, v, b, width)

@@ -1,0 +1,265 @@
+"""Chain stripe centres into segments; the whole extraction of one image."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from multislit.stripes.centres import (
+    CENTRE_METHODS,
+    DEFAULT_K_SIGMA,
+    DEFAULT_V_SMOOTH,
+    estimate_noise,
+    find_centres_validated,
+)
+from multislit.stripes.separation import (
+    remove_streaks,
+    row_median_background,
+    separate_validated,
+)
+from multislit.stripes.sizes import (
+    estimate_dot_size,
+    estimate_stripe_width,
+    median_stride,
+    opening_length,
+)
+from multislit.stripes.validation import (
+    SlitExtractionError,
+    as_image,
+    positive_px,
+    smoothing_taps,
+)
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Default minimum number of centre points of a kept segment: shorter runs are noise or residues
+#: of dots, and a segment must be long enough to carry a dot template for identification.
+DEFAULT_MIN_LENGTH = 10
+
+
+@dataclass(frozen=True, eq=False)
+class SlitExtraction:
+    """Result of :func:`extract_slits`.
+
+    Attributes
+    ----------
+    u, v : (K,) float64, sub-pixel stripe centres (px), sorted by (v, u)
+    peak : (K,) float64, slit intensity at the centre (intensity units above background)
+    width : (K,) float64, stripe FWHM along the row (px), NaN where unknown
+    segment : (K,) int64, segment id from :func:`link_segments` (0..S-1, ordered by mean u),
+        -1 for points in segments shorter than ``min_length``
+    dots : (H, W) float32, the dot image (Fig. 11 e) less its streaks (:func:`remove_streaks`:
+        pieces of stripes that lean too far for the vertical opening, on curved surfaces)
+    noise_sigma : noise sigma of the highpass image (intensity units)
+    stripe_width_px : stripe FWHM used (px); NaN if no stripe could be found to estimate it
+    dot_size_px : dot FWHM used (px); NaN if not estimated (no stripes)
+    """
+
+    u: F64
+    v: F64
+    peak: F64
+    width: F64
+    segment: I64
+    dots: F32
+    noise_sigma: float
+    stripe_width_px: float
+    dot_size_px: float
+
+    @property
+    def num_segments(self) -> int:
+        """Number of kept segments S."""
+        return int(self.segment.max()) + 1 if self.segment.size else 0
+
+
+def link_segments(
+    u: ArrayLike,
+    v: ArrayLike,
+    max_du: float = 1.5,
+    max_gap: int = 2,
+    min_length: int = DEFAULT_MIN_LENGTH,
+) -> I64:
+    """Chain centre points of consecutive rows into segments continuous along v.
+
+    A point p in row v is linked to a point q in the first row v + g (g = 1 .. max_gap + 1)
+    that has any point within ``max_du * g`` px of p's column, if q is the only such point
+    there and p is likewise the only candidate in q's first non-empty row above. Ambiguities
+    (two candidates), jumps and longer gaps break the chain. Vectorised with ``searchsorted``.
+
+    Parameters
+    ----------
+    u, v : (K,) centre columns and rows (px); v is rounded to integer rows
+    max_du : largest column change per row (px) within a segment
+    max_gap : largest number of missing rows bridged
+    min_length : segments with fewer points get label -1
+
+    Returns
+    -------
+    labels : (K,) int64, segment id per point (0..S-1, ordered by the segments' mean u), -1 for
+        points of too-short segments
+    """
+    uu = np.asarray(u, dtype=np.float64)
+    vv = np.asarray(v, dtype=np.float64)
+    if uu.ndim != 1 or vv.shape != uu.shape:
+        raise SlitExtractionError(
+            f"u and v must be 1-D arrays of the same length, got {uu.shape} and {vv.shape}"
+        )
+    if not (np.isfinite(uu).all() and np.isfinite(vv).all()):
+        raise SlitExtractionError("u and v must be finite")
+    if not math.isfinite(max_du) or max_du < 0:
+        raise SlitExtractionError(f"max_du must be >= 0, got {max_du}")
+    if int(max_gap) != max_gap or max_gap < 0:
+        raise SlitExtractionError(f"max_gap must be an integer >= 0, got {max_gap}")
+    if int(min_length) != min_length or min_length < 1:
+        raise SlitExtractionError(f"min_length must be an integer >= 1, got {min_length}")
+    n = uu.size
+    if n == 0:
+        return np.empty(0, np.int64)
+    rows = np.rint(vv)
+    order = np.lexsort((uu, rows))
+    us = uu[order] - uu.min()
+    rs = rows[order] - rows.min()
+    max_g = int(max_gap) + 1
+    # key = row * span + u is sorted; span exceeds the u range plus the search tolerance, so a
+    # search window never spills into another row
+    span = float(us.max()) + 2 * max_du * max_g + 2.0
+    key = rs * span + us
+    idx = np.arange(n)
+
+    def first_neighbour(sign: int) -> tuple[I64, I64]:
+        """Per point: index of the unique candidate in the first non-empty row (-1 if none,
+        -2 if ambiguous) and that row distance."""
+        found = np.full(n, -1, np.int64)
+        dist = np.zeros(n, np.int64)
+        done = np.zeros(n, bool)
+        for g in range(1, max_g + 1):
+            tol = max_du * g
+            centre = key + sign * g * span
+            lo = np.searchsorted(key, centre - tol, "left")
+            hi = np.searchsorted(key, centre + tol, "right")
+            cnt = hi - lo
+            new = ~done & (cnt > 0)
+            found[new] = np.where(cnt[new] == 1, lo[new], -2)
+            dist[new] = g
+            done |= new
+        return found, dist
+
+    nxt, _ = first_neighbour(+1)
+    prv, _ = first_neighbour(-1)
+    has = nxt >= 0
+    src = idx[has]
+    dst = nxt[has]
+    mutual = prv[dst] == src
+    src, dst = src[mutual], dst[mutual]
+    graph = coo_matrix((np.ones(src.size, np.int8), (src, dst)), shape=(n, n))
+    _, comp = connected_components(graph, directed=True, connection="weak")
+    size = np.bincount(comp)
+    keep = size >= min_length
+    mean_u = np.bincount(comp, weights=us) / size
+    kept = np.flatnonzero(keep)
+    new_id = np.full(size.size, -1, np.int64)
+    new_id[kept[np.argsort(mean_u[kept], kind="stable")]] = np.arange(kept.size)
+    labels = np.empty(n, np.int64)
+    labels[order] = new_id[comp]
+    return labels
+
+
+def _empty_extraction(shape: tuple[int, int], noise: float, sw: float, ds: float) -> SlitExtraction:
+    e = np.empty(0)
+    return SlitExtraction(
+        u=e,
+        v=e.copy(),
+        peak=e.copy(),
+        width=e.copy(),
+        segment=np.empty(0, np.int64),
+        dots=np.zeros(shape, np.float32),
+        noise_sigma=noise,
+        stripe_width_px=sw,
+        dot_size_px=ds,
+    )
+
+
+def extract_slits(
+    image: ArrayLike,
+    stripe_width_px: float | None = None,
+    dot_size_px: float | None = None,
+    *,
+    method: str = "gaussian",
+    k_sigma: float = DEFAULT_K_SIGMA,
+    saturation_level: float | None = None,
+    v_smooth: int = DEFAULT_V_SMOOTH,
+    max_du: float = 1.5,
+    max_gap: int = 2,
+    min_length: int = DEFAULT_MIN_LENGTH,
+) -> SlitExtraction:
+    """Stripe centre points, their segments and the dot image of one camera image.
+
+    :func:`separate` -> :func:`find_stripe_centres` (threshold ``k_sigma`` times the highpass
+    noise, saturated runs from the image) -> :func:`link_segments`; the dot image is cleaned of
+    streaks by :func:`remove_streaks`. An image without slits
+    gives an empty result (zero-length arrays), not an error.
+
+    Parameters
+    ----------
+    image : (H, W) uint8, uint16 or float grayscale
+    stripe_width_px, dot_size_px : FWHMs (px); estimated from the image if None
+    method : sub-pixel method, one of :data:`CENTRE_METHODS`
+    k_sigma : detection threshold in noise sigmas
+    saturation_level : camera saturation value (default dtype max for integer images)
+    max_du, max_gap, min_length : see :func:`link_segments`
+
+    Returns
+    -------
+    SlitExtraction
+
+    Raises
+    ------
+    SlitExtractionError
+        invalid image (not 2-D, empty, NaN/inf, bad dtype) or parameters.
+    """
+    img = as_image(image)
+    if method not in CENTRE_METHODS:
+        raise SlitExtractionError(f"method must be one of {CENTRE_METHODS}, got {method!r}")
+    if not math.isfinite(k_sigma) or k_sigma < 0:
+        raise SlitExtractionError(f"k_sigma must be >= 0, got {k_sigma}")
+    sw = positive_px(stripe_width_px, "stripe_width_px")
+    ds = positive_px(dot_size_px, "dot_size_px")
+    if sw is None:
+        try:
+            est = estimate_stripe_width(img)
+        except SlitExtractionError:
+            est = None
+        if est is None:  # nothing stripe-like: no slits
+            return _empty_extraction(
+                img.shape, estimate_noise(img), math.nan, ds if ds is not None else math.nan
+            )
+        sw = est
+    if ds is None:
+        hp0 = cv2.subtract(img, row_median_background(img, median_stride(sw)))
+        ds = estimate_dot_size(hp0) or sw  # dots from the same optics: fall back to the stripe
+    hp, slits, sat, noise = separate_validated(img, sw, ds, saturation_level)
+    dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(np.float32)
+    centres = find_centres_validated(
+        slits, k_sigma * noise, method, sat, sw, smoothing_taps(v_smooth)
+    )
+    segment = link_segments(
+        centres.u, centres.v, max_du=max_du, max_gap=max_gap, min_length=min_length
+    )
+    return SlitExtraction(
+        u=centres.u,
+        v=centres.v,
+        peak=centres.peak,
+        width=centres.width,
+        segment=segment,
+        dots=dots,
+        noise_sigma=noise,
+        stripe_width_px=sw,
+        dot_size_px=ds,
+    )

@@ -1,0 +1,357 @@
+"""Separate the stripes (slits) from the dots on a flat background (paper, Fig. 11 c-e)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from multislit.stripes.sizes import (
+    estimate_dot_size,
+    estimate_stripe_width,
+    median_stride,
+    opening_length,
+)
+from multislit.stripes.validation import as_image, positive_px
+
+F32 = NDArray[np.float32]
+
+
+@dataclass(frozen=True, eq=False)
+class Separation:
+    """Result of :func:`separate` (Fig. 11 c, d, e); all images (H, W) float32, intensity units.
+
+    Attributes
+    ----------
+    highpass : image minus its row-wise running median, clipped at 0: stripes + dots (c)
+    slits : ``highpass`` with the dots found by a vertical opening refilled along the stripe:
+        the stripes only (d)
+    dots : ``highpass - slits``: the dots only (e), >= 0
+    saturated : (H, W) bool, pixels of saturated stripes (image >= saturation level, in vertical
+        runs at least as long as the opening line); all False for float images
+    stripe_width_px : stripe FWHM (px) used to size the median
+    dot_size_px : dot FWHM (px) used to size the opening
+    """
+
+    highpass: F32
+    slits: F32
+    dots: F32
+    saturated: NDArray[np.bool_]
+    stripe_width_px: float
+    dot_size_px: float
+
+
+# Median of 9 by Devillard's 19 compare-exchange network ("Fast median search", 1998), pruned to
+# the 30 min/max operations whose results are used: (i, j, keep_min, keep_max).
+_MED9 = (
+    (1, 2, True, True), (4, 5, True, True), (7, 8, True, True), (0, 1, True, True),
+    (3, 4, True, True), (6, 7, True, True), (1, 2, True, True), (4, 5, True, True),
+    (7, 8, True, True), (0, 3, False, True), (5, 8, True, False), (4, 7, True, True),
+    (3, 6, False, True), (1, 4, False, True), (2, 5, True, False), (4, 7, True, False),
+    (4, 2, True, True), (6, 4, False, True), (4, 2, True, False),
+)  # fmt: skip
+
+
+def _median9(p: list[NDArray]) -> NDArray:
+    p = list(p)
+    for i, j, keep_min, keep_max in _MED9:
+        lo = cv2.min(p[i], p[j]) if keep_min else None
+        hi = cv2.max(p[i], p[j]) if keep_max else None
+        p[i], p[j] = lo, hi
+    return p[4]
+
+
+def row_median_background(image: NDArray, stride: int) -> NDArray:
+    """Row-wise sparse median background, same dtype as ``image`` (H, W).
+
+    Median of the 9 pixels at u + stride * j (j = -4..4) of each row, by a sorting network
+    of 30 vectorised min/max passes. Like any median it keeps steps (albedo edges) sharp; the
+    image border is reflected.
+
+    Parameters
+    ----------
+    image : (H, W) uint8, uint16 or float32
+    stride : sample spacing (px), e.g. :func:`~multislit.stripes.sizes.median_stride`
+    """
+    h, w = image.shape
+    pad = 4 * stride
+    border = cv2.BORDER_REFLECT_101 if pad < w else cv2.BORDER_REPLICATE
+    p = cv2.copyMakeBorder(image, 0, 0, pad, pad, border)
+    return _median9([p[:, pad + j * stride : pad + j * stride + w] for j in range(-4, 5)])
+
+
+def _running_extreme(x: NDArray, length: int, op: str) -> NDArray:
+    """Min (``op='min'``) or max over a centred vertical window of odd ``length`` (per column).
+
+    Doubling trick: log2(length) + 1 vectorised min/max passes; out-of-image samples are
+    ignored (padded with the neutral value).
+    """
+    fn = cv2.min if op == "min" else cv2.max
+    if np.issubdtype(x.dtype, np.integer):
+        info = np.iinfo(x.dtype)
+        neutral = float(info.max if op == "min" else info.min)
+    else:
+        neutral = float(np.finfo(x.dtype).max if op == "min" else -np.finfo(x.dtype).max)
+    r = length // 2
+    h = x.shape[0]
+    y = cv2.copyMakeBorder(x, r, r, 0, 0, cv2.BORDER_CONSTANT, value=neutral)
+    span = 1
+    while 2 * span <= length:
+        y = fn(y[:-span], y[span:])
+        span *= 2
+    if span < length:
+        y = fn(y[: len(y) - (length - span)], y[length - span :])
+    return y[:h]
+
+
+def vertical_opening(x: NDArray, length: int) -> NDArray:
+    """Grey opening with a vertical line of odd ``length`` px (erosion then dilation)."""
+    if length <= 1:
+        return x.copy()
+    return _running_extreme(_running_extreme(x, length, "min"), length, "max")
+
+
+#: Directions (deg from the image's vertical) of the line openings that find streaks in the dot
+#: image: pieces of stripes leaning too far for the vertical opening (curved surfaces), and
+#: edges; vertical streaks are left alone (dots in bands along the slits line up vertically).
+STREAK_ANGLES_DEG = (-75.0, -60.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+
+
+def line_kernel(length: int, angle_deg: float) -> NDArray[np.uint8]:
+    """Structuring element: a digital line of ``length`` px through the centre of a square
+    (length x length) kernel, ``angle_deg`` from the vertical (positive leans right going down)."""
+    k = np.zeros((length, length), np.uint8)
+    r = (length - 1) // 2
+    a = math.radians(angle_deg)
+    # half offsets rounded half away from zero, so the line is symmetric about the centre
+    # (Python's round() rounds 1.5 and 2.5 both to 2: 15 and 30 deg would be one kernel)
+    dx = int(math.copysign(math.floor(abs(r * math.sin(a)) + 0.5), math.sin(a)))
+    dy = int(math.copysign(math.floor(abs(r * math.cos(a)) + 0.5), math.cos(a)))
+    cv2.line(k, (r - dx, r - dy), (r + dx, r + dy), 1, 1)
+    return k
+
+
+def remove_streaks(
+    dots: NDArray, length: int, angles_deg: tuple[float, ...] = STREAK_ANGLES_DEG
+) -> NDArray:
+    """The dot image less its streaks: ``dots`` minus the supremum of its grey openings with
+    lines of ``length`` px at ``angles_deg``. A dot is shorter than the line in every direction
+    and stays; a piece of stripe or an edge that contains such a line goes."""
+    if length <= 1:
+        return dots.copy()
+    out = None
+    for a in angles_deg:
+        o = cv2.morphologyEx(dots, cv2.MORPH_OPEN, line_kernel(length, a))
+        out = o if out is None else cv2.max(out, o)
+    return cv2.subtract(dots, out)
+
+
+def _saturation_level(img: NDArray, saturation_level: float | None) -> float | None:
+    if saturation_level is not None:
+        return float(saturation_level)
+    if np.issubdtype(img.dtype, np.integer):
+        return float(np.iinfo(img.dtype).max)
+    return None
+
+
+def mask_runs(d: NDArray[np.int8]) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """Runs of ones along the rows of a 0/1 mask from ``d = np.diff(padded mask, axis=1)``.
+
+    Returns row, start (first index in the padded-minus-one frame, i.e. the original column)
+    and stop (one past the last) of every run, row-major. Starts (+1) and stops (-1) alternate
+    in a row-major scan, so one flatnonzero finds both.
+    """
+    flat = np.flatnonzero(d)
+    row, col = np.divmod(flat, d.shape[1])
+    return row[0::2], col[0::2], col[1::2]
+
+
+def slope_sigma(length: int) -> float:
+    """Integration scale (px) of :func:`stripe_slope` for an opening of ``length`` px: half the
+    line, a few stripe widths."""
+    return 0.5 * length
+
+
+def stripe_slope(hp: NDArray, sigma: float) -> NDArray[np.float32]:
+    """(H, W) float32, px per row: the local lean of the stripes, du/dv, from the structure
+    tensor of ``hp`` integrated over a Gaussian of ``sigma`` px (a stripe f(u - s v) has
+    gradients (f', -s f'), so s = -J_uv / J_uu); clipped to +-1."""
+    x = hp.astype(np.float32)
+    gu = cv2.Sobel(x, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(x, cv2.CV_32F, 0, 1, ksize=3)
+    juu = cv2.GaussianBlur(gu * gu, (0, 0), sigma)
+    juv = cv2.GaussianBlur(gu * gv, (0, 0), sigma)
+    s = -juv / np.maximum(juu, 1e-6)
+    return np.clip(s, -1.0, 1.0)
+
+
+def fill_dots(
+    hp: NDArray,
+    opened: NDArray,
+    tau: float,
+    length: int,
+    slope: NDArray | None = None,
+) -> NDArray:
+    """Slit image: ``hp`` with the dot pixels refilled by interpolation along the stripe.
+
+    The opening alone distorts a tilted stripe's profile near a dot (the line windows that
+    avoid the dot are off-centre, so they sample the stripe at a shifted position, ~0.1 px
+    centre bias). Instead the opening only *finds* the dots (``hp - opened > tau + 5 %``, dilated by
+    1 px for their tails); each vertical run of dot pixels in a column is replaced by linear
+    interpolation between the clean rows just above and below it. With ``slope`` (px per row,
+    :func:`stripe_slope`) those two samples are taken along the stripe (shifted sideways by the
+    slope, interpolated along their rows), exact for a straight stripe of any lean; without it
+    they are the pixels straight above and below, exact only for a vertical stripe (on a
+    leaning stripe the speckle peaks along it are flagged too, and vertical interpolation would
+    cut its core out).
+    Runs longer than 2 ``length`` or touching the image border keep the opened value.
+    The result is clipped to ``hp`` so that ``hp - slits >= 0``.
+    """
+    h, w = hp.shape
+    diff = cv2.subtract(hp, opened)
+    # + 5 % of the opening: the opening flattens the top of a tilted stripe by
+    # A (1 - exp(-(s (L - 1) / 2)^2 / (2 sigma^2))), ~2.5 % of its peak A at slope s = 0.1; that
+    # is not a dot, and flagging whole stripe tops would make runs too long to interpolate
+    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau)
+    mask = cv2.compare(diff, thr, cv2.CMP_GT)
+    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    out = hp.copy()
+    if not mask.any():
+        return out
+    mt = np.zeros((w, h + 2), np.int8)
+    mt[:, 1:-1] = cv2.transpose(mask) != 0
+    d = np.diff(mt, axis=1)
+    col, start, stop = mask_runs(d)
+    n = stop - start
+    ok = (start > 0) & (stop < h) & (n <= 2 * length)
+    # fallback for every masked pixel: the opening
+    np.copyto(out, opened, where=mask != 0)
+    col, start, stop, n = col[ok], start[ok], stop[ok], n[ok]
+    if n.size == 0:
+        return out
+    run = np.repeat(np.arange(n.size), n)
+    t = np.arange(run.size) - np.repeat(np.cumsum(n) - n, n) + 1  # 1..n within each run
+    frac = t / (n[run] + 1).astype(np.float32)
+    rows = start[run] + t - 1
+    cols = col[run]
+    if slope is None:
+        above = hp[start - 1, col].astype(np.float32)[run]
+        below = hp[stop, col].astype(np.float32)[run]
+    else:
+        # along the stripe: the clean pixels t rows above and n + 1 - t rows below, shifted
+        # sideways by the local slope (linear interpolation along their rows)
+        s = slope[start + n // 2, col].astype(np.float32)[run]
+        above = _row_sample(hp, start[run] - 1, cols - s * t)
+        below = _row_sample(hp, stop[run], cols + s * (n[run] + 1 - t))
+    val = above + (below - above) * frac
+    if np.issubdtype(hp.dtype, np.integer):
+        val = np.rint(val)
+    out[rows, cols] = np.minimum(val, hp[rows, cols]).astype(hp.dtype)
+    return out
+
+
+def _row_sample(img: NDArray, r: NDArray, u: NDArray) -> NDArray[np.float32]:
+    """Linear interpolation of ``img`` along rows ``r`` at (fractional) columns ``u``."""
+    w = img.shape[1]
+    u = np.clip(u, 0.0, w - 1.0)
+    u0 = np.minimum(np.floor(u).astype(np.intp), w - 2) if w > 1 else np.zeros(u.shape, np.intp)
+    f = (u - u0).astype(np.float32)
+    a = img[r, u0].astype(np.float32)
+    b = img[r, np.minimum(u0 + 1, w - 1)].astype(np.float32)
+    return a + (b - a) * f
+
+
+def separate_validated(
+    img: NDArray, stripe_width_px: float, dot_size_px: float, saturation_level: float | None
+) -> tuple[NDArray, NDArray, NDArray, float]:
+    """Core of :func:`separate` on a validated image, native dtype (exact integer arithmetic).
+
+    Returns highpass, slits, saturated mask, noise sigma of the highpass.
+    """
+    bg = row_median_background(img, median_stride(stripe_width_px))
+    hp = cv2.subtract(img, bg)  # saturates at 0 for integer images
+    if hp.dtype == np.float32:
+        np.maximum(hp, 0, out=hp)
+    noise = noise_from_difference(img)
+    length = opening_length(dot_size_px)
+    opened = vertical_opening(hp, length)
+    # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
+    # false alarms on stripes are harmless, they are interpolated from their neighbours along
+    # the stripe's local slope)
+    slits = fill_dots(hp, opened, 3.0 * noise, length, stripe_slope(hp, slope_sigma(length)))
+    level = _saturation_level(img, saturation_level)
+    if level is None:
+        sat = np.zeros(img.shape, bool)
+    else:
+        sat = (img >= level).view(np.uint8)
+        # keep saturated runs that are stripes (vertically long), not saturated dots
+        sat = vertical_opening(sat, length).view(bool)
+    return hp, slits, sat, noise
+
+
+def noise_from_difference(img: NDArray) -> float:
+    """Pixel noise sigma from differences of vertical neighbours.
+
+    The stripes run along v, so a pixel minus the one below cancels them (and the background);
+    what is left is noise, plus dots and stripe bends, which are a minority that the median
+    ignores. Unlike the spread of ``img - bg`` this does not depend on how well the background
+    was estimated (a row median lifted by dense stripes).
+    """
+    d = img[1::2].astype(np.float32) - img[:-1:2].astype(np.float32)
+    sigma = 1.4826 * float(np.median(np.abs(d))) / math.sqrt(2.0)
+    if np.issubdtype(img.dtype, np.integer):
+        sigma = max(sigma, 1.0 / math.sqrt(12.0))  # quantisation noise floor
+    return sigma
+
+
+def separate(
+    image: ArrayLike,
+    stripe_width_px: float | None = None,
+    dot_size_px: float | None = None,
+    *,
+    saturation_level: float | None = None,
+) -> Separation:
+    """Split an image into stripes (slits) and dots on a flat background (paper Fig. 11).
+
+    Parameters
+    ----------
+    image : (H, W) uint8, uint16 or float grayscale
+    stripe_width_px : stripe FWHM along the row (px); estimated by
+        :func:`estimate_stripe_width` if None. Sizes the row median (:func:`median_stride`).
+    dot_size_px : dot FWHM (px); estimated by :func:`estimate_dot_size` if None (falling back
+        to the stripe width). Sizes the opening (:func:`opening_length`).
+    saturation_level : pixel value at which the camera saturates; default the dtype maximum
+        for integer images (pass e.g. 4095 for 12-bit data in uint16), none for float.
+
+    Returns
+    -------
+    Separation
+        highpass, slits, dots (H, W) float32, saturated (H, W) bool, sizes used.
+
+    Raises
+    ------
+    SlitExtractionError
+        bad image or sizes, or no stripe to estimate the width from.
+    """
+    img = as_image(image)
+    sw = positive_px(stripe_width_px, "stripe_width_px")
+    ds = positive_px(dot_size_px, "dot_size_px")
+    if sw is None:
+        sw = estimate_stripe_width(img)
+    if ds is None:
+        hp0 = cv2.subtract(img, row_median_background(img, median_stride(sw)))
+        ds = estimate_dot_size(hp0) or sw
+    hp, slits, sat, _ = separate_validated(img, sw, ds, saturation_level)
+    hpf = hp.astype(np.float32)
+    sf = slits.astype(np.float32)
+    return Separation(
+        highpass=hpf,
+        slits=sf,
+        dots=hpf - sf,
+        saturated=sat,
+        stripe_width_px=sw,
+        dot_size_px=ds,
+    )

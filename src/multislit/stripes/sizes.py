@@ -1,0 +1,167 @@
+"""Stripe and dot sizes: estimated from an image, and the filter sizes they give."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from multislit.stripes.validation import SlitExtractionError, as_image
+
+#: FWHM / sigma of a Gaussian, 2 sqrt(2 ln 2).
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def median_stride(stripe_width_px: float) -> int:
+    """Sample spacing s (px) of the row-wise sparse median for a stripe of FWHM w (px).
+
+    The background at u is the median of the 9 pixels u + s*j, j = -4..4, of its row (a window
+    of 8 s + 1 px). A median of 9 ignores up to 4 bright samples. A Gaussian stripe exceeds 10 %
+    of its peak over 2 * 2.15 sigma = 1.83 FWHM, so s >= 0.92 FWHM keeps it within 3 samples,
+    leaving one spare for a dot, a neighbour stripe's flank or the bright side of an albedo
+    step; the window is then ~7-8 FWHM.
+    """
+    return max(1, math.ceil(0.92 * stripe_width_px))
+
+
+def opening_length(dot_size_px: float) -> int:
+    """Length L (px, odd) of the vertical line that removes dots of FWHM d (px) by opening.
+
+    An opening with a line of length L removes a bump whose vertical extent is < L. A Gaussian
+    dot falls below 2 % of its peak at 2.8 sigma = 1.19 FWHM from its centre, so the line must
+    span at least +-1.2 FWHM; we use +-ceil(1.5 FWHM) for margin (d = 1.9 px -> L = 7).
+    """
+    return 2 * math.ceil(1.5 * dot_size_px) + 1
+
+
+# --------------------------------------------------------------------------- size estimation
+# Scales (Gaussian sigma, px) searched by the ridge-scale estimator: sigma 0.6 .. 7.5 px covers
+# FWHM 1.4 .. 18 px, every practical stripe or dot size; ratio 1.25 with log-parabolic refinement.
+_SCALES = 0.6 * 1.25 ** np.arange(12)
+
+
+def _d2_kernel(sigma: float) -> NDArray[np.float32]:
+    """Sampled second derivative of a unit-area Gaussian (zero sum, exact on x^2 / 2)."""
+    r = max(2, math.ceil(4 * sigma))
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    k = g * (x * x - sigma * sigma)
+    k -= k.mean()  # no response to a constant
+    k /= 0.5 * np.sum(k * x * x)  # response exactly 1 to x^2 / 2
+    return k.astype(np.float32)
+
+
+def _ridge_fwhm(
+    profiles: NDArray[np.float32], pixel_noise: float, z_min: float = 6.0
+) -> float | None:
+    """Typical FWHM (px) of the bright ridges along the rows of ``profiles`` (R, N), or None.
+
+    Lindeberg's scale selection: the gamma-normalised second derivative -t^(3/4) d2/dx2 of
+    the Gaussian-smoothed profile (t = sigma^2) peaks, for a Gaussian ridge of sigma s, exactly
+    at sigma = s. Ridge points are local maxima along the row with a response > ``z_min`` times
+    the robust noise of that scale's response; the scale is refined by a parabola in log sigma
+    and the median over all ridge points is returned as FWHM.
+    """
+    n_scales = len(_SCALES)
+    resp = np.empty((n_scales,) + profiles.shape, np.float32)
+    for i, s in enumerate(_SCALES):
+        k = _d2_kernel(float(s))
+        resp[i] = -(s**1.5) * cv2.sepFilter2D(
+            profiles, cv2.CV_32F, k, np.ones(1, np.float32), borderType=cv2.BORDER_REFLECT
+        )
+    # per-scale noise of the response, propagated from the pixel noise (white noise through
+    # the kernel): robust even where stripes cover most of a row (dense slits)
+    noise = np.array(
+        [pixel_noise * s**1.5 * float(np.linalg.norm(_d2_kernel(float(s)))) for s in _SCALES]
+    )
+    noise = np.maximum(noise, 1e-6 * max(float(np.abs(resp).max()), 1e-30))
+    best = resp.argmax(axis=0)
+    strength = np.take_along_axis(resp, best[None], 0)[0]
+    z = strength / noise[best]
+    mid = strength[:, 1:-1]
+    is_max = (mid > strength[:, :-2]) & (mid >= strength[:, 2:]) & (z[:, 1:-1] > z_min)
+    r, c = np.nonzero(is_max)
+    if r.size == 0:
+        return None
+    c = c + 1
+    st = strength[r, c]
+    # drop weak ridges (texture, faint dots) next to the bright stripes
+    keep = st > 0.1 * np.percentile(st, 99)
+    r, c = r[keep], c[keep]
+    b = best[r, c]
+    log_s = np.log(_SCALES)[b].astype(np.float64)
+    inner = (b > 0) & (b < n_scales - 1)
+    bi = b[inner]
+    y0 = resp[bi - 1, r[inner], c[inner]].astype(np.float64)
+    y1 = resp[bi, r[inner], c[inner]].astype(np.float64)
+    y2 = resp[bi + 1, r[inner], c[inner]].astype(np.float64)
+    den = y0 - 2 * y1 + y2
+    off = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
+    log_s[inner] += np.clip(off, -0.5, 0.5) * math.log(1.25)
+    if log_s.size < 3:
+        return None
+    return float(np.exp(np.median(log_s)) * FWHM_PER_SIGMA)
+
+
+def _sample(n: int, count: int) -> NDArray[np.intp]:
+    """``count`` evenly spaced indices in [0, n) (all if n <= count)."""
+    if n <= count:
+        return np.arange(n)
+    return np.linspace(0, n - 1, count).round().astype(np.intp)
+
+
+def estimate_stripe_width(image: ArrayLike) -> float:
+    """Estimate the typical stripe FWHM (px, along the row) of an image.
+
+    Ridge scale selection (see ``_ridge_fwhm``) on 24 evenly spaced rows: the stripes are
+    the dominant bright ridges along rows; the median over all of them is robust to dots.
+
+    Parameters
+    ----------
+    image : (H, W) uint8, uint16 or float
+
+    Returns
+    -------
+    fwhm : float, px
+
+    Raises
+    ------
+    SlitExtractionError
+        if the image is invalid or shows no stripe-like ridge.
+    """
+    img = as_image(image)
+    idx = _sample(img.shape[0] - 1, 24)
+    rows = img[idx].astype(np.float32)
+    # pixel noise from vertical neighbours: the (near-vertical) stripes cancel, noise does not
+    diff = rows - img[idx + 1].astype(np.float32)
+    pixel_noise = max(1.4826 * float(np.median(np.abs(diff))) / math.sqrt(2.0), 1e-3)
+    w = _ridge_fwhm(rows, pixel_noise)
+    if w is None:
+        raise SlitExtractionError("estimate_stripe_width: no stripes found in image")
+    return w
+
+
+def estimate_dot_size(highpass: ArrayLike) -> float | None:
+    """Estimate the typical dot FWHM (px) from a highpass image (stripes + dots).
+
+    Along a column the (vertical) stripes are flat and only the dots form ridges, so the ridge
+    scale selection of :func:`estimate_stripe_width` on 48 evenly spaced columns measures the
+    dots. Returns None if no dot is found.
+
+    Parameters
+    ----------
+    highpass : (H, W) array, e.g. :attr:`Separation.highpass`
+
+    Returns
+    -------
+    fwhm : float (px) or None
+    """
+    hp = as_image(highpass, name="highpass")
+    cols = np.ascontiguousarray(hp[:, _sample(hp.shape[1], 48)].T, dtype=np.float32)
+    # noise from neighbours along each column: the dots are sparse there
+    pixel_noise = max(
+        1.4826 * float(np.median(np.abs(np.diff(cols, axis=1)))) / math.sqrt(2.0), 1e-3
+    )
+    return _ridge_fwhm(cols, pixel_noise)
