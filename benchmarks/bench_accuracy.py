@@ -24,9 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
-import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -34,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results import RESULTS, command_line, write_section
 
 from multislit.calibrate import Calibration, calibrate_capture
 from multislit.errors import MultislitError
@@ -56,9 +54,6 @@ RIG_Z = 1000.0  # the rig's z in the world (scene.py convention)
 WALL_Z = RIG_Z - 1150.0  # a far wall behind every artefact
 SELECT_MM = 5.0  # points within r + 5 mm of a true sphere centre, 5 mm of a true plane
 EXCLUDE = 0.003  # the guideline's 0.3 %
-RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
-BEGIN = "<!-- bench_accuracy:begin -->"
-END = "<!-- bench_accuracy:end -->"
 
 
 # --------------------------------------------------------------------------- artefacts
@@ -365,20 +360,6 @@ def to_markdown(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_results(text: str, command: str, date: str, path: Path = RESULTS) -> None:
-    """Replace (or append) the accuracy section of RESULTS.md."""
-    block = (
-        f"{BEGIN}\n## Accuracy (VDI/VDE 2634-2 style)\n\nCommand: `{command}`  \n"
-        f"Date: {date}\n\n{text}\n{END}"
-    )
-    old = path.read_text() if path.exists() else "# Benchmark results\n"
-    if BEGIN in old and END in old:
-        new = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _: block, old, flags=re.S)
-    else:
-        new = old.rstrip("\n") + "\n\n" + block + "\n"
-    path.write_text(new)
-
-
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", type=float, default=1.0, help="rig resolution factor (1: full)")
@@ -389,11 +370,8 @@ def main(argv: list[str] | None = None) -> None:
     r = run_suite(args.scale, args.seed, full=True, holes=not args.no_holes)
     print(r["markdown"])
     if not args.no_write:
-        date = subprocess.run(["date", "-u"], capture_output=True, text=True).stdout.strip()
-        cmd = ".venv/bin/python benchmarks/bench_accuracy.py " + " ".join(
-            argv if argv is not None else sys.argv[1:]
-        )
-        write_results(r["markdown"], cmd.strip(), date)
+        cmd = command_line("bench_accuracy.py", argv)
+        write_section("bench_accuracy", "Accuracy (VDI/VDE 2634-2 style)", r["markdown"], cmd)
         print(f"written to {RESULTS}")
 
 

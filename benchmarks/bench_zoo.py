@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from results import command_line, write_section
 
 from multislit.calibrate import calibrate_capture
 from multislit.identify import identify, prepare_reference
@@ -56,17 +57,17 @@ def _rig_summary(cap: Capture) -> str:
     )
 
 
-def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> None:
-    """Simulate, calibrate and identify one zoo seed; print its rows."""
+def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> list[str]:
+    """Simulate, calibrate and identify one zoo seed; print its lines and return them."""
     cap = Capture.open(simulate_zoo_capture(folder, seed, scenes=scenes, max_size=size))
-    print(f"\nseed {seed}: {_rig_summary(cap)}")
-    print(f"calibration: {_calibrate(cap)}")
+    lines = [f"Seed {seed}: {_rig_summary(cap)}; calibration {_calibrate(cap)}.", ""]
+    print(lines[0])
     ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
-    print(
+    lines += [
         "| seed | scene | object coverage | object wrong | object wrong, conf >= 0.5 | "
-        "backdrop coverage | backdrop wrong | ms |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
+        "backdrop coverage | backdrop wrong | ms |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for p in cap.scans:
         img = cap.image(p)
         t = time.perf_counter()
@@ -75,11 +76,13 @@ def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> Non
         truth = np.load(cap.root / "truth" / f"{p.stem}.npz")
         m = object_metrics(ident, truth["slit"], truth["object"])
         o, b = m["object"], m["backdrop"]
-        print(
+        lines.append(
             f"| {seed} | {p.stem} | {100 * o['coverage']:.1f} % | {100 * o['wrong']:.2f} % | "
             f"{100 * o['wrong_confident']:.2f} % | {100 * b['coverage']:.1f} % | "
             f"{100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
         )
+        print(lines[-1])
+    return lines + [""]
 
 
 def main() -> None:
@@ -108,6 +111,9 @@ def main() -> None:
     )
     ap.add_argument("--scenes", type=int, default=2, help="scenes per seed")
     ap.add_argument("--keep", type=Path, default=None, help="write the captures here")
+    ap.add_argument(
+        "--write", action="store_true", help="record the tables in benchmarks/RESULTS.md"
+    )
     args = ap.parse_args()
     seeds = (
         list(range(HELD_OUT_START, HELD_OUT_START + args.held_out)) if args.held_out else args.seeds
@@ -115,8 +121,23 @@ def main() -> None:
     print(f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px")
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
+        lines = [
+            f"Images at most {args.size[0]}x{args.size[1]} px, {args.scenes} scenes per seed; "
+            f"{'held-out' if args.held_out else 'tuning'} seeds {seeds}. Coverage: true "
+            "stripe-centre pixels with a point of the right slit; wrong: shares of the points.",
+            "",
+        ]
         for seed in seeds:
-            run_seed(seed, root / f"zoo_{seed}", tuple(args.size), args.scenes)
+            lines += run_seed(seed, root / f"zoo_{seed}", tuple(args.size), args.scenes)
+    if args.write:
+        kind = "held_out" if args.held_out else "tuning"
+        write_section(
+            f"bench_zoo_{kind}",
+            f"Objects apart from the backdrop: zoo rigs and scenes ({kind.replace('_', '-')} seeds)",
+            "\n".join(lines).rstrip(),
+            command_line("bench_zoo.py"),
+        )
+        print("written to benchmarks/RESULTS.md")
 
 
 if __name__ == "__main__":

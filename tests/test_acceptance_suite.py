@@ -21,6 +21,8 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_accuracy.py"
 
 
 def _bench():
+    if str(BENCH.parent) not in sys.path:
+        sys.path.insert(0, str(BENCH.parent))  # the benchmark imports its sibling results.py
     spec = importlib.util.spec_from_file_location("bench_accuracy", BENCH)
     mod = importlib.util.module_from_spec(spec)
     sys.modules.setdefault("bench_accuracy", mod)  # dataclasses look their module up
