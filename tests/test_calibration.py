@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from multislit.calibrate.camera import decompose_camera, refine_camera, rms
 from multislit.calibrate.markers import find_marker_corners
 from multislit.calibrate.model import SCHEMA
 from multislit.calibrate.projector import fit_projector_matrix
-from multislit.calibrate.slit_planes import slit_plane_rms
+from multislit.calibrate.slit_planes import axis_order_deviation, planes_between, slit_plane_rms
 from multislit.calibrate.slit_points import points_on_faces
 from multislit.errors import CalibrationError, MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, look_at, rvec_from_rotation
@@ -564,3 +565,26 @@ def test_calibration_errors(tmp_path):
     del d["camera_dlt"]
     with pytest.raises(CalibrationError, match="malformed"):
         Calibration.from_dict(d)
+
+
+def test_axis_model_checks_order_and_fills_in_between():
+    rng = np.random.default_rng(5)
+    planes_true, _, _ = grating_planes(num=15)
+    X, s = points_on_planes(rng, planes_true, per_slit=60, noise=0.01)
+    keep = ~np.isin(s, [0, 6])  # slit 0 at the end and slit 6 between planes: no points
+    sp = fit_slit_planes(X[keep], s[keep], 15)
+    dev = axis_order_deviation(sp)
+    assert np.isnan(dev[[0, 6]]).all() and np.nanmax(np.abs(dev)) < 0.01, dev
+    filled, which = planes_between(sp)
+    assert which == (6,) and not filled.valid[0] and np.isnan(filled.rms_mm[6])
+    assert _angle_mrad(filled.planes[[6]], planes_true[[6]])[0] < 0.05
+    # a plane turned a third of a spacing (mislabelled points) stands out
+    bad = sp.planes.copy()
+    n = bad[9, :3]
+    # turn about the axis (vertical, through (450, 0, 0))
+    step = np.arcsin(650e-6 / 30e-3) / 3
+    c, si = np.cos(step), np.sin(step)
+    n2 = np.array([c * n[0] + si * n[2], n[1], -si * n[0] + c * n[2]])
+    bad[9] = [*n2, -(n2 @ np.array([450.0, 0.0, 0.0]))]
+    dev2 = axis_order_deviation(dataclasses.replace(sp, planes=bad))
+    assert abs(dev2[9]) > 0.25 and np.nanmax(np.abs(np.delete(dev2, 9))) < 0.2, dev2

@@ -236,9 +236,9 @@ def test_full_size_plane_scan_within_a_tenth_of_a_mm(tmp_path):
 
     out = simulate_capture(tmp_path / "cap", ["plane"], RigSpec(), seed=0)
     cap = Capture.open(out)
-    cal = calibrate_capture(cap).calibration
-    ref = capture_reference(cap)
-    r = scan_image(cap.image(out / "scans" / "plane.png"), ref, cal)
+    calres = calibrate_capture(cap)
+    assert calres.reference is not None  # prepared for the reference boards: reused here
+    r = scan_image(cap.image(out / "scans" / "plane.png"), calres.reference, calres.calibration)
     pl = np.asarray(
         json.loads((out / "truth" / "models.json").read_text())["scenes"]["plane"]["plane"]
     )

@@ -5,7 +5,8 @@
 its report. The building blocks live in the modules: ``camera`` (DLT and refinement),
 ``markers`` (checker corners), ``capture_camera`` (the camera of a capture), ``slit_points``
 and ``slit_labels`` (points on the slits), ``slit_planes`` and ``projector`` (the projector
-models and fits), ``model`` (the calibration file).
+models and fits), ``boards`` (points on the slits from the reference boards), ``model`` (the
+calibration file).
 """
 
 from multislit.calibrate.camera import calibrate_dlt

@@ -11,6 +11,10 @@
    (:func:`~multislit.calibrate.slit_labels.label_by_order`) and put on the target's faces.
 3. **Projector** (:func:`~multislit.calibrate.projector.fit_projector`): one plane per slit
    through a common axis, fitted robustly, and the paper's 2x4 matrix for comparison.
+4. **Reference boards** (:mod:`~multislit.calibrate.boards`): the boards of the reference
+   images, posed by the slits calibrated on the target, give every slit they show points at
+   several depths; all planes are refitted with them. The result says per slit where its plane
+   came from (``origin``), and a slit the boards show that ends without a plane is an error.
 
 Automatic planes that the points do not support are never returned: the calibration falls back
 to the hand readings (and says so in the notes) or stops with an error.
@@ -23,17 +27,28 @@ Units: mm in the world (target) frame, px in the image.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from multislit.calibrate.boards import (
+    BoardPoints,
+    fit_with_boards,
+    plane_origins,
+    reference_stripes,
+)
 from multislit.calibrate.capture_camera import CameraCalibration, camera_from_capture
 from multislit.calibrate.model import Calibration
 from multislit.calibrate.projector import ProjectorFit, auto_fit_problem, fit_projector
 from multislit.calibrate.slit_labels import label_by_order
+from multislit.calibrate.slit_planes import (
+    MAX_AXIS_ANGLE_DEVIATION,
+    axis_order_deviation,
+    planes_between,
+)
 from multislit.calibrate.slit_points import (
     SlitPointSet,
     as_capture,
@@ -41,7 +56,8 @@ from multislit.calibrate.slit_points import (
     hand_slit_points,
     read_capture_image,
 )
-from multislit.errors import CalibrationError, CaptureError
+from multislit.errors import CalibrationError, CaptureError, ReferenceImageError
+from multislit.identify import ReferenceSet, prepare_reference
 from multislit.io import Capture, json_safe, write_json
 
 _SOURCES = ("auto", "hand")
@@ -59,6 +75,10 @@ class CalibrationResult:
     projector : ProjectorFit, the robust fit of the slit planes and the 2x4 matrix
     source : "auto" or "hand", where the points came from (after any fallback)
     notes : remarks for people (fallbacks, slits left out or placed by the common axis)
+    boards : BoardPoints, the reference boards as posed and their points (None: not used)
+    origin : (K,) str, where each slit's plane came from (:func:`plane_origins`; "" = none)
+    reference : the capture's prepared :class:`~multislit.identify.ReferenceSet` (None: the
+        reference boards were not used); scans of the capture can reuse it
     """
 
     calibration: Calibration
@@ -67,6 +87,9 @@ class CalibrationResult:
     projector: ProjectorFit
     source: str
     notes: tuple[str, ...] = ()
+    boards: BoardPoints | None = None
+    origin: tuple[str, ...] = ()
+    reference: ReferenceSet | None = None
 
     def report(self) -> dict[str, Any]:
         """Figures for people (and the ``report`` key of the written file)."""
@@ -74,6 +97,7 @@ class CalibrationResult:
         sp = self.projector.slit_planes
         valid = sp.valid
         rms_mm = sp.rms_mm
+        dev = axis_order_deviation(sp)
         worst_slits = [
             (int(j), float(rms_mm[j])) for j in np.argsort(-np.nan_to_num(rms_mm, nan=-1))[:3]
         ]
@@ -100,7 +124,20 @@ class CalibrationResult:
                 "excluded": [[int(j), r] for j, r in self.projector.excluded],
                 "from_axis": [int(j) for j in sp.from_axis],
                 "outliers_dropped": int(self.projector.dropped.sum()),
+                "per_slit": [
+                    {
+                        "slit": j,
+                        "origin": self.origin[j] if j < len(self.origin) else "",
+                        "rms_mm": float(rms_mm[j]),
+                        "points": int(sp.counts[j]),
+                        "axis_deviation": float(dev[j]),
+                    }
+                    for j in range(sp.num_slits)
+                ],
             },
+            "reference_boards": None
+            if self.boards is None
+            else {"planes": self.boards.planes.tolist(), "rms_mm": self.boards.rms_mm.tolist()},
             "projector_matrix": {
                 "median_rms_mm": float(np.nanmedian(self.projector.projector_rms_mm))
                 if np.any(np.isfinite(self.projector.projector_rms_mm))
@@ -115,6 +152,7 @@ def calibrate_capture(
     *,
     source: str = "auto",
     labels: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+    references: bool = True,
 ) -> CalibrationResult:
     """Calibrate camera and projector from a capture folder; see the module docstring.
 
@@ -130,6 +168,10 @@ def calibrate_capture(
         With "auto": the slit labels of stripe centres of ``calibration/slits.png`` (u, v in
         px, slit an int, -1 where unknown), e.g. known labels of a simulated capture. Default:
         :func:`~multislit.calibrate.slit_labels.label_by_order`.
+    references : bool
+        Use the reference boards as well (:func:`~multislit.calibrate.boards.fit_with_boards`):
+        every slit they show gets a plane. False: the target's faces alone, as when the
+        reference images were not taken with this rig set-up. Default True.
 
     Returns
     -------
@@ -138,15 +180,17 @@ def calibrate_capture(
     Raises
     ------
     CalibrationError
-        Bad ``source``, too few markers, or no projector planes the data support.
+        Bad ``source``, too few markers, no projector planes the data support, or a slit seen
+        on the reference boards that ends without a plane (named, with the reason).
     """
     if source not in _SOURCES:
         raise CalibrationError(f"source must be 'auto' or 'hand', got {source!r}")
     cap = as_capture(capture)
     cam = camera_from_capture(cap)
     notes: list[str] = []
+    reference = _reference(cap, notes) if references else None
     if source == "auto":
-        pts, fit, problem = _auto_projector(cap, cam, labels)
+        pts, fit, problem = _auto_projector(cap, cam, labels, reference)
     else:
         pts = hand_slit_points(cap)
         fit, problem = fit_projector(pts, cap.num_slits), None
@@ -165,6 +209,9 @@ def calibrate_capture(
         )
         pts = hand_slit_points(cap)
         fit = fit_projector(pts, cap.num_slits)
+    boards, origin = None, plane_origins(fit, pts)
+    if reference is not None:
+        pts, fit, boards, origin = _add_boards(cap, cam, pts, fit, notes, reference)
     notes += _fit_notes(fit)
     res = cam.residuals
     calib = Calibration(
@@ -178,16 +225,35 @@ def calibrate_capture(
         marker_ids=res.ids,
         marker_residuals_px=res.refined_px,
     )
-    return CalibrationResult(calib, cam, pts, fit, used_source, tuple(notes))
+    return CalibrationResult(
+        calib, cam, pts, fit, used_source, tuple(notes), boards, origin, reference
+    )
+
+
+def _reference(cap: Capture, notes: list[str]) -> ReferenceSet | None:
+    """The capture's prepared reference set, or None (with a note) if it cannot be had."""
+    if not cap.references:
+        notes.append("no reference images: slit planes from the target alone")
+        return None
+    try:
+        return prepare_reference(
+            [cap.image(p) for p in cap.references], cap.num_slits, [p.stem for p in cap.references]
+        )
+    except ReferenceImageError as exc:
+        notes.append(f"reference boards not used ({exc}); slit planes from the target alone")
+        return None
 
 
 def _auto_projector(
-    cap: Capture, cam: CameraCalibration, labels: tuple[ArrayLike, ArrayLike, ArrayLike] | None
+    cap: Capture,
+    cam: CameraCalibration,
+    labels: tuple[ArrayLike, ArrayLike, ArrayLike] | None,
+    reference: ReferenceSet | None,
 ) -> tuple[SlitPointSet, ProjectorFit | None, str | None]:
     """Automatic points and their projector fit, or why the fit cannot be trusted."""
     if labels is None:
         img = read_capture_image(cap, cap.slits_image, "slit image")
-        lab = label_by_order(img, cap, camera=cam.from_markers)
+        lab = label_by_order(img, cap, camera=cam.from_markers, reference=reference)
         labels = (lab.u, lab.v, lab.slit)
     pts = auto_slit_points(cap, cam.refined, labels)
     try:
@@ -195,6 +261,48 @@ def _auto_projector(
     except CalibrationError as exc:
         return pts, None, str(exc)
     return pts, fit, auto_fit_problem(fit, pts, cap.num_slits)
+
+
+def _add_boards(
+    cap: Capture,
+    cam: CameraCalibration,
+    pts: SlitPointSet,
+    fit: ProjectorFit,
+    notes: list[str],
+    reference: ReferenceSet,
+) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...]]:
+    """The fit with the reference boards' points (:func:`fit_with_boards`), and each plane's origin.
+
+    Appends to ``notes``; raises :class:`CalibrationError` naming the slits the references show
+    that end without a plane.
+    """
+    stripes = reference_stripes(cap, reference)
+    camera = cam.refined if cam.refined is not None else cam.dlt
+    n_faces = len(cap.target.faces) if cap.target is not None else 0
+    bf = fit_with_boards(pts, fit, stripes, camera, n_faces)
+    notes += list(bf.boards.notes)
+    fit, why = bf.fit, dict(bf.fit.excluded)
+    origin = list(plane_origins(fit, bf.points, bf.first_board_face))
+    if np.any(stripes.shown() & ~fit.slit_planes.valid):
+        sp, filled = planes_between(fit.slit_planes)
+        kept = tuple(e for e in fit.excluded if e[0] not in filled)
+        fit = replace(fit, slit_planes=sp, excluded=kept)
+        for j in filled:
+            origin[j] = "common axis model"
+            notes.append(
+                f"slit {j} has no plane from its points ({why.get(j, 'no points')}): its plane is "
+                "the common axis model's, between its neighbours' (no points check it)"
+            )
+    lost = np.flatnonzero(stripes.shown() & ~fit.slit_planes.valid)
+    if len(lost):
+        raise CalibrationError(
+            f"slit(s) {lost.tolist()} are seen on the reference boards but got no plane ("
+            + "; ".join(f"slit {j}: {why.get(int(j), 'no points')}" for j in lost[:5])
+            + ")"
+            + "".join(f"; {n}" for n in bf.boards.notes)
+            + "; check the reference images (every slit on every board) and the target image"
+        )
+    return bf.points, fit, bf.boards, tuple(origin)
 
 
 def _fit_notes(fit: ProjectorFit) -> list[str]:
@@ -205,6 +313,12 @@ def _fit_notes(fit: ProjectorFit) -> list[str]:
         notes.append(
             f"slit {j} is seen along one line only (one target face): its plane is the plane "
             f"through the common axis and that line (RMS {sp.rms_mm[j]:.3g} mm)"
+        )
+    dev = axis_order_deviation(sp)
+    for j in np.flatnonzero(np.abs(np.nan_to_num(dev)) > MAX_AXIS_ANGLE_DEVIATION):
+        notes.append(
+            f"slit {j}'s plane is {dev[j]:+.2f} slit spacings from where the other slits' planes "
+            "put it about the common axis (mislabelled points?)"
         )
     missing = [j for j, why in fit.excluded if why == "no points"]
     if missing:
@@ -252,6 +366,14 @@ def format_report(result: CalibrationResult) -> list[str]:
         + ", ".join(f"slit {j} {v:.4f}" for j, v in s["worst_rms_mm"] if math.isfinite(v))
         + f"; {s['outliers_dropped']} outlier point(s) dropped"
     )
+    for row in _origin_rows(s["per_slit"]):
+        lines.append("  " + row)
+    if r["reference_boards"] is not None:
+        lines.append(
+            "reference boards posed by the calibrated slits, RMS "
+            + ", ".join(f"{v:.4f}" for v in r["reference_boards"]["rms_mm"])
+            + " mm"
+        )
     if result.projector.projector is not None:
         lines.append(
             f"paper's 2x4 projector matrix on the same points: RMS median "
@@ -260,3 +382,23 @@ def format_report(result: CalibrationResult) -> list[str]:
     for note in result.notes:
         lines.append(f"note: {note}")
     return lines
+
+
+def _origin_rows(per_slit: list[dict[str, Any]]) -> list[str]:
+    """Report lines: runs of slits whose planes came from the same source, with their RMS."""
+    rows: list[str] = []
+    i = 0
+    while i < len(per_slit):
+        j = i
+        while j + 1 < len(per_slit) and per_slit[j + 1]["origin"] == per_slit[i]["origin"]:
+            j += 1
+        run = per_slit[i : j + 1]
+        what = run[0]["origin"] or "no plane"
+        slits = f"slit {i}" if i == j else f"slits {i}-{j}"
+        rms = [x["rms_mm"] for x in run if math.isfinite(x["rms_mm"])]
+        res = ""
+        if rms:
+            res = f", RMS {min(rms):.4f}" + (f"-{max(rms):.4f}" if len(rms) > 1 else "") + " mm"
+        rows.append(f"{slits}: {what}{res}")
+        i = j + 1
+    return rows

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -463,3 +463,75 @@ def slit_plane_rms(planes: ArrayLike, points: ArrayLike, slits: ArrayLike) -> tu
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(cnt > 0, np.sqrt(ssq / np.maximum(cnt, 1)), np.nan)
     return r, d
+
+
+def axis_order_deviation(sp: SlitPlanes) -> F64:
+    """How far each slit's plane turns from where the other slits' planes put it, in spacings.
+
+    A grating's slit planes pass through one axis and turn about it monotonically with the slit
+    number (``sin(theta_m) = m lambda / pitch``): their angles about the axis lie on a smooth
+    curve of the slit number. For each slit, a cubic through the other slits' angles predicts
+    its angle; the deviation is the difference in local slit spacings (the curve's slope). A
+    mislabelled slit or a plane pulled by wrong points shows up as a deviation of a large
+    fraction of a spacing, or as a plane out of order.
+
+    Parameters
+    ----------
+    sp : SlitPlanes with a common axis
+
+    Returns
+    -------
+    (K,) float64, slit spacings, signed (NaN: no plane, no axis, or fewer than 5 planes)
+    """
+    out = np.full(sp.num_slits, np.nan)
+    idx = np.flatnonzero(sp.valid)
+    if sp.axis_direction is None or len(idx) < 5:
+        return out
+    u = sp.axis_direction / np.linalg.norm(sp.axis_direction)
+    ref = sp.planes[idx[len(idx) // 2], :3]
+    b1 = ref - (ref @ u) * u
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(u, b1)
+    n = sp.planes[idx, :3] * np.sign(sp.planes[idx, :3] @ b1)[:, None]
+    phi = np.arctan2(n @ b2, n @ b1)
+    t = (idx - idx.mean()) / max(float(np.ptp(idx)), 1.0)
+    for i, j in enumerate(idx):
+        others = np.arange(len(idx)) != i
+        coef = np.polyfit(t[others], phi[others], 3)
+        slope = float(np.polyval(np.polyder(coef), t[i])) / max(float(np.ptp(idx)), 1.0)
+        out[j] = (phi[i] - float(np.polyval(coef, t[i]))) / max(abs(slope), 1e-12)
+    return out
+
+
+def planes_between(sp: SlitPlanes) -> tuple[SlitPlanes, tuple[int, ...]]:
+    """Planes for slits without one between slits with planes, from the common-axis model.
+
+    The angle about the axis of such a slit is read off a cubic through the other planes'
+    angles against the slit number (see :func:`axis_order_deviation`); its plane is the plane
+    through the axis at that angle. Slits beyond the first or last plane are not extrapolated.
+
+    Returns
+    -------
+    planes : SlitPlanes with those slits filled in (their ``rms_mm`` stays NaN: no points)
+    filled : the slits filled in
+    """
+    idx = np.flatnonzero(sp.valid)
+    if sp.axis_direction is None or sp.axis_point is None or len(idx) < 5:
+        return sp, ()
+    gaps = [j for j in range(int(idx[0]) + 1, int(idx[-1])) if not sp.valid[j]]
+    if not gaps:
+        return sp, ()
+    u = sp.axis_direction / np.linalg.norm(sp.axis_direction)
+    ref = sp.planes[idx[len(idx) // 2], :3]
+    b1 = ref - (ref @ u) * u
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(u, b1)
+    n = sp.planes[idx, :3] * np.sign(sp.planes[idx, :3] @ b1)[:, None]
+    coef = np.polyfit(idx.astype(float), np.arctan2(n @ b2, n @ b1), min(3, len(idx) - 1))
+    planes = sp.planes.copy()
+    for j in gaps:
+        phi = float(np.polyval(coef, float(j)))
+        nj = math.cos(phi) * b1 + math.sin(phi) * b2
+        planes[j] = [*nj, -(nj @ sp.axis_point)]
+    keep = tuple((j, why) for j, why in sp.excluded if j not in gaps)
+    return replace(sp, planes=planes, excluded=keep), tuple(gaps)
