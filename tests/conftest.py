@@ -89,3 +89,13 @@ def dense_scenes_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def dense_scenes_reference(dense_scenes_capture: Path):
     return _reference(dense_scenes_capture)
+
+
+@pytest.fixture(scope="session")
+def zoo_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A zoo rig and scene (seed 1, a tuning seed) at 640x480, 29 slits: spheres, a rod and boxes
+    in front of a wall. About 12 s to simulate."""
+    from multislit.sim import simulate_zoo_capture
+
+    out = tmp_path_factory.mktemp("zoo") / "cap"
+    return simulate_zoo_capture(out, 1, scenes=1, max_size=(640, 512))

@@ -1,5 +1,6 @@
 """Calibration on a zoo rig whose outermost slits barely reach the target: the reference boards
-give every slit a plane."""
+give every slit a plane. The capture (zoo seed 1 at 640x480, 29 slits: the target alone leaves
+slits 0-2 and 26-28 out) is the session fixture ``zoo_capture``."""
 
 from __future__ import annotations
 
@@ -17,15 +18,6 @@ from multislit.io import Capture
 from multislit.reconstruct import triangulate
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def zoo_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Zoo seed 1 at 640x480 (29 slits): the target alone leaves slits 0-2 and 26-28 out."""
-    from multislit.sim.zoo import simulate_zoo_capture
-
-    out = tmp_path_factory.mktemp("zoo") / "cap"
-    return simulate_zoo_capture(out, 1, scenes=1, max_size=(640, 512))
 
 
 def per_slit_truth_rms(capture: Path, cal) -> np.ndarray:

@@ -1,0 +1,44 @@
+"""Identification on the objects apart from the wall behind them (a zoo rig and scene)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from multislit.identify import identify, prepare_reference
+from multislit.io import Capture
+from multislit.sim import object_metrics
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def metrics(zoo_capture):
+    cap = Capture.open(zoo_capture)
+    ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+    truth = np.load(zoo_capture / "truth" / "zoo0.npz")
+    ident = identify(cap.image(cap.scans[0]), ref)
+    return object_metrics(ident, truth["slit"], truth["object"])
+
+
+def test_the_scene_has_objects_and_a_backdrop(metrics):
+    assert metrics["object"]["centres"] > 1000
+    assert metrics["backdrop"]["centres"] > 1000
+
+
+def test_the_backdrop_is_covered_and_right(metrics):
+    b = metrics["backdrop"]
+    assert b["coverage"] >= 0.90, b
+    assert b["wrong_confident"] <= 0.001, b
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="goal not met: on this rig the objects' stripe pixels are about 57 % covered and "
+    "1.9 % of their points wrong (0.19 % with confidence >= 0.5)",
+)
+def test_the_objects_meet_the_goals(metrics):
+    o = metrics["object"]
+    assert o["coverage"] >= 0.90, o
+    assert o["wrong_confident"] <= 0.001, o
+    assert o["wrong"] <= 0.002, o
