@@ -465,6 +465,18 @@ def slit_plane_rms(planes: ArrayLike, points: ArrayLike, slits: ArrayLike) -> tu
     return r, d
 
 
+def _axis_angles(sp: SlitPlanes, idx: NDArray[np.intp]) -> tuple[F64, F64, F64]:
+    """Angles (rad) about the common axis of the planes ``idx``, and the frame (b1, b2) they are
+    measured in (unit vectors normal to the axis; b1 along the middle plane's normal)."""
+    u = sp.axis_direction / np.linalg.norm(sp.axis_direction)
+    ref = sp.planes[idx[len(idx) // 2], :3]
+    b1 = ref - (ref @ u) * u
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(u, b1)
+    n = sp.planes[idx, :3] * np.sign(sp.planes[idx, :3] @ b1)[:, None]
+    return np.arctan2(n @ b2, n @ b1), b1, b2
+
+
 def axis_order_deviation(sp: SlitPlanes) -> F64:
     """How far each slit's plane turns from where the other slits' planes put it, in spacings.
 
@@ -487,13 +499,7 @@ def axis_order_deviation(sp: SlitPlanes) -> F64:
     idx = np.flatnonzero(sp.valid)
     if sp.axis_direction is None or len(idx) < 5:
         return out
-    u = sp.axis_direction / np.linalg.norm(sp.axis_direction)
-    ref = sp.planes[idx[len(idx) // 2], :3]
-    b1 = ref - (ref @ u) * u
-    b1 /= np.linalg.norm(b1)
-    b2 = np.cross(u, b1)
-    n = sp.planes[idx, :3] * np.sign(sp.planes[idx, :3] @ b1)[:, None]
-    phi = np.arctan2(n @ b2, n @ b1)
+    phi, _, _ = _axis_angles(sp, idx)
     t = (idx - idx.mean()) / max(float(np.ptp(idx)), 1.0)
     for i, j in enumerate(idx):
         others = np.arange(len(idx)) != i
@@ -521,13 +527,8 @@ def planes_between(sp: SlitPlanes) -> tuple[SlitPlanes, tuple[int, ...]]:
     gaps = [j for j in range(int(idx[0]) + 1, int(idx[-1])) if not sp.valid[j]]
     if not gaps:
         return sp, ()
-    u = sp.axis_direction / np.linalg.norm(sp.axis_direction)
-    ref = sp.planes[idx[len(idx) // 2], :3]
-    b1 = ref - (ref @ u) * u
-    b1 /= np.linalg.norm(b1)
-    b2 = np.cross(u, b1)
-    n = sp.planes[idx, :3] * np.sign(sp.planes[idx, :3] @ b1)[:, None]
-    coef = np.polyfit(idx.astype(float), np.arctan2(n @ b2, n @ b1), min(3, len(idx) - 1))
+    phi, b1, b2 = _axis_angles(sp, idx)
+    coef = np.polyfit(idx.astype(float), phi, min(3, len(idx) - 1))
     planes = sp.planes.copy()
     for j in gaps:
         phi = float(np.polyval(coef, float(j)))
