@@ -12,7 +12,7 @@ paper's hand readings (``calibrate_capture(capture, source="hand")``) with one r
   vertical and about the horizontal axis: flatness error F from the points within 5 mm of the
   true plane;
 
-and the demo's hole table (:func:`multislit.demo.run_demo`, its own rig with 49 slits).
+and the demo's hole table (:func:`multislit.app.demo.run_demo`, its own rig with 49 slits).
 Ranges are given with all points and with the 0.3 % largest residuals left out (the guideline
 allows that). No MPE is specified for this rig, so no pass/fail.
 
@@ -318,7 +318,7 @@ def to_markdown(r: dict[str, Any]) -> str:
     ]
     if r["holes"]:
         lines.append(
-            "Holes plate (the demo, `multislit.demo.run_demo`: its own rig, 49 slits, "
+            "Holes plate (the demo, `multislit.app.demo.run_demo`: its own rig, 49 slits, "
             "calibrated and referenced once), diameters in mm:\n"
         )
         lines.append(

@@ -26,7 +26,7 @@ from results import command_line, write_section
 from multislit.calibrate import calibrate_capture
 from multislit.identify import identify, prepare_reference
 from multislit.io import Capture
-from multislit.sim import object_metrics, simulate_zoo_capture
+from multislit.sim import coverage_losses, object_metrics, simulate_zoo_capture
 
 TUNING_SEEDS = (0, 1, 2)
 HELD_OUT_START = 1000
@@ -65,8 +65,9 @@ def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> lis
     ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
     lines += [
         "| seed | scene | object coverage | object wrong | object wrong, conf >= 0.5 | "
-        "backdrop coverage | backdrop wrong | ms |",
-        "|---|---|---|---|---|---|---|---|",
+        "objects lost: no centre / unidentified / left out | backdrop coverage | "
+        "backdrop wrong | ms |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for p in cap.scans:
         img = cap.image(p)
@@ -76,9 +77,13 @@ def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> lis
         truth = np.load(cap.root / "truth" / f"{p.stem}.npz")
         m = object_metrics(ident, truth["slit"], truth["object"])
         o, b = m["object"], m["backdrop"]
+        lost = coverage_losses(ident, truth["slit"], mask=truth["object"])
+        share = {k: 100 * n / max(1, sum(lost.values())) for k, n in lost.items()}
         lines.append(
             f"| {seed} | {p.stem} | {100 * o['coverage']:.1f} % | {100 * o['wrong']:.2f} % | "
-            f"{100 * o['wrong_confident']:.2f} % | {100 * b['coverage']:.1f} % | "
+            f"{100 * o['wrong_confident']:.2f} % | {share['no_centre']:.1f} / "
+            f"{share['segment_unidentified']:.1f} / {share['point_left_out']:.1f} % | "
+            f"{100 * b['coverage']:.1f} % | "
             f"{100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
         )
         print(lines[-1])
