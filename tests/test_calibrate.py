@@ -333,6 +333,7 @@ def test_markers_on_one_face(small_capture, tmp_path):
         calibrate_capture(cap, source="hand")
 
 
+@pytest.mark.slow
 def test_marker_hint_off_image_is_skipped(small_capture, tmp_path):
     def off(t):
         t["markers"][0]["uv_hint"] = [-50.0, 20.0]
@@ -362,6 +363,7 @@ def test_unknown_slit_number_in_hand_readings(small_capture, tmp_path):
 
 
 # --------------------------------------------------------------------------- CLI and file
+@pytest.mark.slow
 def test_cli_calibrate_round_trip(small_capture, tmp_path, capsys):
     out = tmp_path / "cal.json"
     assert main(["calibrate", str(small_capture), "-o", str(out), "--source", "hand"]) == 0
@@ -495,6 +497,7 @@ def lose_slit(monkeypatch, slit: int) -> None:
     monkeypatch.setattr(pipeline, "fit_with_boards", fit_without)
 
 
+@pytest.mark.slow
 def test_slit_on_the_boards_without_a_plane_is_an_error(small_capture, monkeypatch):
     """A slit the references show that ends without a plane stops the calibration, named."""
     lose_slit(monkeypatch, 0)  # the first slit: the common axis model cannot place it either
