@@ -115,12 +115,18 @@ def _tilt(axis: str, deg: float) -> tuple[float, float, float]:
 
 
 def default_artefacts(full: bool = True) -> list[Scene]:
-    """The suite's scenes: 3 spheres, 4 ball bars, 3 plates (``full``); else 1 of each."""
+    """The suite's scenes: 3 spheres of 120 mm, 3 of 40 mm, 4 ball bars, 3 plates (``full``);
+    else 1 sphere, 1 bar, 1 plate."""
     z = RIG_Z
     spheres = [
         sphere_scene("sphere_800", (-100.0, 80.0, z - 800.0), 60.0),
         sphere_scene("sphere_900", (0.0, 0.0, z - 900.0), 60.0),
         sphere_scene("sphere_1000", (110.0, -80.0, z - 1000.0), 60.0),
+    ]
+    # small spheres (d = 40 mm) at 0.9 m, in three places: crossed by two or three slits
+    small = [
+        sphere_scene(f"sphere40_{i}", (x, y, z - 900.0), 20.0)
+        for i, (x, y) in enumerate(((-120.0, 60.0), (5.0, -10.0), (130.0, -70.0)))
     ]
     c30, s30 = np.cos(np.radians(30)), np.sin(np.radians(30))
     bars = [
@@ -135,7 +141,7 @@ def default_artefacts(full: bool = True) -> list[Scene]:
         plate_scene("plate_x25deg", _tilt("x", 25.0)),
     ]
     if full:
-        return spheres + bars + plates
+        return spheres + small + bars + plates
     return [spheres[1], bars[0], plates[1]]
 
 
@@ -179,10 +185,15 @@ def _safe(f, *a, **k) -> float:
         return float("nan")
 
 
+def _near_sphere(points: np.ndarray, sphere: dict) -> np.ndarray:
+    """(N,) bool: the points within r + SELECT_MM of the true centre."""
+    c = np.asarray(sphere["centre"], float)
+    return np.linalg.norm(points - c, axis=1) < float(sphere["radius"]) + SELECT_MM
+
+
 def on_sphere(points: np.ndarray, sphere: dict) -> np.ndarray:
     """The points within r + SELECT_MM of the true centre."""
-    c = np.asarray(sphere["centre"], float)
-    return points[np.linalg.norm(points - c, axis=1) < float(sphere["radius"]) + SELECT_MM]
+    return points[_near_sphere(points, sphere)]
 
 
 def evaluate(res: ScanResult, truth: dict) -> list[dict[str, Any]]:
@@ -222,15 +233,22 @@ def evaluate(res: ScanResult, truth: dict) -> list[dict[str, Any]]:
         )
     else:
         for s in truth["spheres"]:
-            p = on_sphere(pts, s)
+            near = _near_sphere(pts, s)
+            p = pts[near]
             d = 2.0 * float(s["radius"])
             c = np.asarray(s["centre"], float)
             dist = float(np.linalg.norm(c - np.array([-225.0, 0.0, RIG_Z])))
+            arcs = len(
+                np.unique(res.slit[np.linalg.norm(pts - c, axis=1) < s["radius"] + SELECT_MM])
+            )
             try:
                 off = float(np.linalg.norm(fit_sphere(p).centre - c))
-                note = f"d = {d:.0f} mm at {dist:.0f} mm from the camera; centre off {off:.3f} mm"
+                note = (
+                    f"d = {d:.0f} mm at {dist:.0f} mm from the camera; centre off {off:.3f} mm; "
+                    f"{arcs} slit arcs"
+                )
             except MultislitError as exc:
-                note = f"no fit: {exc}"
+                note = f"no fit ({arcs} slit arcs): {exc}"
             rows.append(
                 {
                     "artefact": name,
