@@ -36,7 +36,7 @@ from results import RESULTS, command_line, write_section
 from multislit.calibrate import Calibration, calibrate_capture
 from multislit.errors import MultislitError
 from multislit.geometry import fit_sphere
-from multislit.identify import ReferenceSet
+from multislit.identify import ReferenceSet, capture_reference
 from multislit.io import Capture
 from multislit.measure import (
     flatness_error,
@@ -45,7 +45,7 @@ from multislit.measure import (
     probing_error_size,
     sphere_spacing_error,
 )
-from multislit.reconstruct import ScanResult, capture_reference, scan_image
+from multislit.reconstruct import ScanResult, scan_image
 from multislit.sim import Polygon, Primitive, Scene, Sphere, constant
 from multislit.sim.rig import RigSpec
 from multislit.sim.simulate import simulate_capture

@@ -152,8 +152,8 @@ def _ours_rig(spec: RigSpec, seed: int = 0) -> tuple:
         from pathlib import Path
 
         from multislit.calibrate import calibrate_capture
+        from multislit.identify import capture_reference
         from multislit.io import Capture
-        from multislit.reconstruct import capture_reference
         from multislit.sim.simulate import simulate_capture
 
         with tempfile.TemporaryDirectory() as tmp:

@@ -14,11 +14,11 @@ from multislit.app.cli import main
 from multislit.app.demo import demo_rig
 from multislit.calibrate import Calibration, calibrate_capture, write_calibration
 from multislit.errors import CalibrationError, MeasurementError
+from multislit.identify import capture_reference
 from multislit.io import Capture, read_ply
 from multislit.measure import measure_holes, measure_holes_from_points
 from multislit.reconstruct import (
     ScanResult,
-    capture_reference,
     load_capture_calibration,
     scan_capture,
     scan_image,
@@ -139,8 +139,6 @@ def test_calibration_of_other_size_is_clear(cap_dir):
         scan_capture(cap_dir, calibration=other)
     cap = Capture.open(cap_dir)
     img = cap.image(cap.scans[0])
-    from multislit.reconstruct import capture_reference
-
     with pytest.raises(CalibrationError, match="640x512"):
         scan_image(img, capture_reference(cap), other)
 

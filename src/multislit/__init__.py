@@ -22,10 +22,10 @@ __version__ = "0.1.0"
 
 from multislit.calibrate import Calibration, calibrate_capture, write_calibration
 from multislit.errors import MultislitError
-from multislit.identify import prepare_reference
+from multislit.identify import capture_reference, prepare_reference
 from multislit.io import Capture, read_ply, write_ply
 from multislit.measure import measure_holes
-from multislit.reconstruct import capture_reference, scan_capture, scan_image
+from multislit.reconstruct import scan_capture, scan_image
 from multislit.sim import RigSpec, simulate_capture
 
 __all__ = [

@@ -124,8 +124,9 @@ def cmd_holes(args: argparse.Namespace) -> int:
     src = Path(args.source)
     measurements = {}
     if src.is_dir():
+        from multislit.identify import capture_reference
         from multislit.io import Capture
-        from multislit.reconstruct import capture_reference, load_capture_calibration
+        from multislit.reconstruct import load_capture_calibration
 
         cap = Capture.open(src, require_target=False)
         cal = load_capture_calibration(cap, args.calibration)

@@ -29,9 +29,9 @@ import numpy as np
 
 from multislit.calibrate import calibrate_capture, write_calibration
 from multislit.errors import MultislitError
+from multislit.identify import capture_reference
 from multislit.io import Capture, json_safe, write_json
 from multislit.measure import measure_holes
-from multislit.reconstruct import capture_reference
 from multislit.sim import Progress, RigSpec, simulate_capture
 
 #: The paper's Table 1: (name, actual, estimated, error), mm.

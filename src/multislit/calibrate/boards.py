@@ -30,7 +30,7 @@ from multislit.calibrate.slit_points import EXTRACT_OPTIONS, SlitPointSet, _row_
 from multislit.errors import MultislitError
 from multislit.geometry import PinholeCamera, fit_plane_robust, intersect_rays_planes
 from multislit.geometry.camera import F64
-from multislit.identify import ReferenceSet, curve_u, prepare_reference
+from multislit.identify import ReferenceSet, capture_reference, curve_u
 from multislit.io import Capture
 from multislit.stripes import extract_slits, refine_centres
 
@@ -88,10 +88,9 @@ def reference_stripes(capture: Capture, reference: ReferenceSet | None = None) -
     ReferenceImageError
         The reference images cannot be prepared (missing, or not every slit on the board).
     """
-    paths = list(capture.references)
-    imgs = [capture.image(p) for p in paths]
+    imgs = [capture.image(p) for p in capture.references]
     if reference is None:
-        reference = prepare_reference(imgs, capture.num_slits, [p.stem for p in paths])
+        reference = capture_reference(capture)
     uvs, slits = [], []
     tol = _LABEL_FRACTION * reference.spacing_px
     for r, img in enumerate(imgs):

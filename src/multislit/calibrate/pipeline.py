@@ -57,7 +57,7 @@ from multislit.calibrate.slit_points import (
     read_capture_image,
 )
 from multislit.errors import CalibrationError, CaptureError, ReferenceImageError
-from multislit.identify import ReferenceSet, prepare_reference
+from multislit.identify import ReferenceSet, capture_reference
 from multislit.io import Capture, json_safe, write_json
 
 _SOURCES = ("auto", "hand")
@@ -236,9 +236,7 @@ def _reference(cap: Capture, notes: list[str]) -> ReferenceSet | None:
         notes.append("no reference images: slit planes from the target alone")
         return None
     try:
-        return prepare_reference(
-            [cap.image(p) for p in cap.references], cap.num_slits, [p.stem for p in cap.references]
-        )
+        return capture_reference(cap)
     except ReferenceImageError as exc:
         notes.append(f"reference boards not used ({exc}); slit planes from the target alone")
         return None

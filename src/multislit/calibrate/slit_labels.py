@@ -38,8 +38,8 @@ from multislit.geometry.camera import F64
 from multislit.identify import (
     OrderParams,
     apply_run_offsets,
+    capture_reference,
     identify,
-    prepare_reference,
     row_runs,
     run_offsets,
 )
@@ -78,8 +78,7 @@ def _nearest_in_row(u_from: F64, v_from: F64, u: F64, v: F64, tol_px: float) -> 
 
 def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
     if reference is None:
-        refs = [cap.image(q) for q in cap.references]
-        reference = prepare_reference(refs, cap.num_slits, names=[q.name for q in cap.references])
+        reference = capture_reference(cap)
     # the anchors must be the dots' own evidence, not identification's order fill
     return identify(image, reference, order_fill=False)
 

@@ -26,6 +26,7 @@ from multislit.identify.patches import (
 from multislit.identify.reference import (
     CURVE_DEGREE,
     ReferenceSet,
+    capture_reference,
     curve_du,
     curve_u,
     estimate_epipole,
@@ -41,6 +42,7 @@ __all__ = [
     "identify",
     "Identification",
     "prepare_reference",
+    "capture_reference",
     "ReferenceSet",
     "template_size",
     "split_at_brightness_steps",

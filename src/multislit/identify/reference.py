@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from multislit.errors import ReferenceImageError
 from multislit.identify.patches import normalise_patches, sample_patches, window_sums
+from multislit.io import Capture
 from multislit.stripes import SlitExtraction, extract_slits
 
 F64 = NDArray[np.float64]
@@ -430,3 +431,9 @@ def prepare_reference(
         rms,
         density,
     )
+
+
+def capture_reference(capture: Capture) -> ReferenceSet:
+    """:func:`prepare_reference` of a capture folder's reference images (named by file stem)."""
+    imgs = [capture.image(p) for p in capture.references]
+    return prepare_reference(imgs, capture.num_slits, [p.stem for p in capture.references])

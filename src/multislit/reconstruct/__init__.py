@@ -3,7 +3,6 @@
 from multislit.reconstruct.scan import (
     CALIBRATION_FILE,
     ScanResult,
-    capture_reference,
     load_capture_calibration,
     scan_capture,
     scan_image,
@@ -22,6 +21,5 @@ __all__ = [
     "scan_image",
     "scan_image_for_holes",
     "load_capture_calibration",
-    "capture_reference",
     "scan_capture",
 ]

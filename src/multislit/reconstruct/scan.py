@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from multislit.calibrate import Calibration
 from multislit.errors import CalibrationError, MeasurementError
-from multislit.identify import Identification, ReferenceSet, identify, prepare_reference
+from multislit.identify import Identification, ReferenceSet, capture_reference, identify
 from multislit.io import Capture
 from multislit.reconstruct.triangulation import triangulate
 from multislit.stripes import as_image, refine_centres
@@ -396,12 +396,6 @@ def load_capture_calibration(capture: Capture, path: str | Path | None = None) -
     except CalibrationError as exc:
         raise CalibrationError(f"{p}: {exc}") from None
     return cal
-
-
-def capture_reference(capture: Capture) -> ReferenceSet:
-    """Prepare the reference set from the capture's reference images."""
-    imgs = [capture.image(p) for p in capture.references]
-    return prepare_reference(imgs, capture.num_slits, [p.stem for p in capture.references])
 
 
 def scan_capture(
