@@ -21,7 +21,7 @@ from multislit.identify import (
     sample_patches,
     split_at_brightness_steps,
 )
-from multislit.identify.labelling import _identify, _segment_votes
+from multislit.identify.labelling import _contradicted_by_dots, _identify, _segment_votes
 from multislit.identify.matching import _in_volume, _Options, score_candidates
 from multislit.identify.order import (
     _between_agreeing,
@@ -544,3 +544,24 @@ def test_coverage_losses_classify_every_stripe_pixel(results, scenes_capture):
     loss = coverage_losses(ident, truth)
     assert sum(loss.values()) == pytest.approx(1.0)
     assert loss["covered"] == pytest.approx(m["coverage"])
+
+
+def test_a_label_its_own_dots_contradict_is_left_out():
+    """Whatever labelled a segment, its own samples have the last word: a label their dots
+    score well below their best slit is left out; a label within their noise stays."""
+    rng = np.random.default_rng(5)
+    n_slits, per_seg = 8, 12
+    seg = np.repeat(np.arange(3), 20)  # three segments of 20 points
+    si = np.concatenate([np.arange(s * 20, s * 20 + per_seg) for s in range(3)])
+    scores = rng.normal(0.0, 0.08, (len(si), n_slits))
+    scores[:per_seg, 3] += 0.5  # segment 0: its dots clearly say slit 3
+    scores[per_seg : 2 * per_seg, 2] += 0.5  # segment 1: slit 2
+    # segment 2: no clear slit (dark surface), every slit within noise
+    slit = np.repeat([5, 2, 6], 20)  # segment 0 labelled against its dots (e.g. by order)
+    bad = _contradicted_by_dots(seg, si, scores, slit)
+    assert bad[:20].all()  # contradicted: left out
+    assert not bad[20:40].any()  # its dots agree
+    assert not bad[40:].any()  # undecided dots do not veto
+    # unlabelled points and points without samples are never flagged
+    slit[:20] = -1
+    assert not _contradicted_by_dots(seg, si, scores, slit).any()

@@ -4,8 +4,9 @@ The dot templates of sample points on each slit segment of a scan are matched wi
 reference dot images (:mod:`~multislit.identify.matching`). The samples of a segment vote; the
 margin between the best and the second-best slit gives a confidence; the left-to-right order
 of neighbouring segments is checked, and the order along the rows labels segments the dots
-left unsure (:mod:`~multislit.identify.order`). A segment that cannot be identified with
-confidence is dropped and counted, never guessed.
+left unsure (:mod:`~multislit.identify.order`). Last, a label that the segment's own dots
+contradict is left out. A segment that cannot be identified with confidence is dropped and
+counted, never guessed.
 """
 
 from __future__ import annotations
@@ -54,6 +55,14 @@ _JUNCTION_TEMPLATE = 0.4
 #: A segment the dots were too unsure of takes their best slit where its neighbours in the rows
 #: confirm it on at least this share of its points (:func:`~.order.confirm_by_neighbours`).
 _NEIGHBOUR_SHARE = 0.5
+#: A segment's label is left out where its own samples' mean NCC for it lies below their best
+#: slit's by more than this many standard errors (of the per-sample difference) ...
+_VETO_SE = 2.0
+#: ... plus this much NCC.
+_VETO_TOLERANCE = 0.02
+#: NCC counted for a hypothesis without a candidate (the slit cannot light the sample inside
+#: the measuring volume, or its template would leave the image).
+_NO_CANDIDATE = -0.2
 
 
 def _junction_rows(half_height_px: int) -> int:
@@ -130,7 +139,7 @@ def _segment_votes(
     n = np.diff(np.r_[starts, len(rows)])
     S = scores[rows]
     # a hypothesis without a candidate counts as a bad match
-    Sz = np.where(np.isfinite(S), S, -0.2)
+    Sz = np.where(np.isfinite(S), S, _NO_CANDIDATE)
     mean = np.add.reduceat(Sz, starts, axis=0) / n[:, None]  # (G, N)
     k1 = np.argmax(mean, axis=1)
     g = np.arange(len(starts))
@@ -257,6 +266,7 @@ def _identify(
         _apply_order_rules(
             ex, seg, slit, conf, has, lut_k, lut_c, dot_votes, reference.num_slits, p.end_order
         )
+    slit[_contradicted_by_dots(seg, si, scores, slit)] = -1
     conf[slit < 0] = 0.0
     n_id = int(np.sum(lut_k >= 0))
     return Identification(
@@ -401,6 +411,48 @@ def _vouched_points(
     if has.any():
         has &= ~near_segment_ends(ex.u, ex.v, seg, lut_k, _TRIM_ROWS, _junction_rows(hh))
     return has
+
+
+def _contradicted_by_dots(
+    seg: I64, si: NDArray[np.intp], scores: F64, slit: I64
+) -> NDArray[np.bool_]:
+    """(K,) bool: the labelled points whose segment's own dots contradict their slit.
+
+    However a segment got its label (its dots, or its place in the rows), its own samples have
+    the last word: where their mean NCC for the label lies below their best slit's by more than
+    ``_VETO_SE`` standard errors of the per-sample difference (plus ``_VETO_TOLERANCE``), the
+    label is left out. A segment without samples, or whose dots are undecided, keeps its label.
+    """
+    out = np.zeros(len(seg), bool)
+    lab = slit >= 0
+    if not lab.any() or len(si) == 0:
+        return out
+    # the segment's label at its samples: the label of its labelled points (one per segment)
+    lut = np.full(int(seg.max()) + 1, -1, np.int64)
+    lut[seg[lab]] = slit[lab]
+    ss = seg[si]
+    keep = np.flatnonzero((ss >= 0) & (lut[np.maximum(ss, 0)] >= 0))
+    if keep.size == 0:
+        return out
+    j = keep[np.argsort(ss[keep], kind="stable")]  # samples grouped by segment
+    s_sorted = ss[j]
+    starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
+    n = np.diff(np.r_[starts, len(j)])
+    X = np.where(np.isfinite(scores[j]), scores[j], _NO_CANDIDATE)
+    grp = np.repeat(np.arange(len(starts)), n)
+    mean = np.add.reduceat(X, starts, axis=0) / n[:, None]
+    best = np.argmax(mean, axis=1)
+    k = lut[s_sorted[starts]]
+    d = X[np.arange(len(X)), best[grp]] - X[np.arange(len(X)), k[grp]]
+    dm = np.add.reduceat(d, starts) / n
+    ss2 = np.add.reduceat((d - dm[grp]) ** 2, starts)
+    se = np.sqrt(ss2 / np.maximum(n - 1, 1)) / np.sqrt(n)
+    se = np.where(n > 1, se, np.inf)  # one sample says too little
+    bad = dm > _VETO_SE * se + _VETO_TOLERANCE
+    bad_seg = np.zeros(len(lut), bool)
+    bad_seg[s_sorted[starts][bad]] = True
+    out[lab] = bad_seg[seg[lab]] & (slit[lab] == lut[seg[lab]])
+    return out
 
 
 def _drop_out_of_order(
