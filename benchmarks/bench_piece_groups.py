@@ -12,9 +12,8 @@ margin over the next slit less its standard error, as for one piece. A piece who
 contradict its group's slit is left out.
 
 It prints, per scan, object and backdrop figures (coverage / wrong / wrong with confidence >=
-0.5, %) of :func:`multislit.identify.identify` (the order rules), of the groups, and of the order
-rules followed by the same dots veto (a labelled piece whose own dots contradict its slit is left
-out), then the means over all scans.
+0.5, %) of :func:`multislit.identify.identify` (the dots, the order rules and the dots' veto) and
+of the groups, then the means over all scans.
 
 Run:  .venv/bin/python benchmarks/bench_piece_groups.py CAPTURE [CAPTURE ...]
 (captures from :func:`multislit.sim.simulate_zoo_capture`; their truth files hold the object
@@ -188,33 +187,11 @@ def groups_identify(img, ref):
     return Identification(ex.u, ex.v, slit, conf, seg, ex.peak, ex.width, 0, 0, {}, "", ex)
 
 
-def veto_identify(img, ref):
-    """The order rules, then a labelled piece whose own dots contradict its slit is left out."""
-    ident = identify(img, ref)
-    p = _Options()
-    ex = ident.extraction
-    seg = ident.segment
-    step = max(2.0, _SAMPLE_STEP * ref.spacing_px)
-    hh = p.template_size(ref)[1]
-    h = img.shape[0]
-    si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
-    Sz = np.where(np.isfinite(s := _sample_scores(ex, seg, si, ref, hh, p)), s, MISSING)
-    slit = ident.slit.copy()
-    for sid in np.unique(seg[slit >= 0]):
-        X = Sz[seg[si] == sid]
-        m = (seg == sid) & (slit >= 0)
-        for k in np.unique(slit[m]):
-            if not compatible(X, int(k)):
-                slit[m & (slit == k)] = -1
-    conf = np.where(slit >= 0, ident.confidence, 0.0)
-    return Identification(ex.u, ex.v, slit, conf, seg, ex.peak, ex.width, 0, 0, {}, "", ex)
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("captures", type=Path, nargs="+")
     args = ap.parse_args()
-    methods = {"rules": identify, "groups": groups_identify, "rules+veto": veto_identify}
+    methods = {"identify": identify, "groups": groups_identify}
     table = {name: [] for name in methods}
     for d in args.captures:
         cap = Capture.open(d)
