@@ -288,7 +288,7 @@ def test_estimate_stripe_width():
 @pytest.mark.parametrize(
     "bad",
     [
-        np.zeros((4, 5, 3), np.uint8),
+        np.zeros((4, 5, 2), np.uint8),
         np.zeros((0, 10), np.uint8),
         np.array([[1.0, np.nan], [0.0, 1.0]]),
         np.zeros((5, 5), bool),

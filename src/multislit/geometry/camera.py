@@ -92,11 +92,18 @@ class Camera(Protocol):
     def rays(self, uv: ArrayLike) -> tuple[F64, F64]: ...
 
 
+def _coefficients(dist: F64) -> tuple[float, float, float, float, float]:
+    """(k1, k2, p1, p2, k3) of a 4- or 5-coefficient OpenCV model."""
+    k1, k2, p1, p2 = dist[:4]
+    k3 = dist[4] if len(dist) > 4 else 0.0
+    return k1, k2, p1, p2, k3
+
+
 def _distort(xy: F64, dist: F64) -> F64:
-    k1, k2, p1, p2 = dist
+    k1, k2, p1, p2, k3 = _coefficients(dist)
     x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
-    radial = 1 + k1 * r2 + k2 * r2 * r2
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3)) if k3 else 1 + k1 * r2 + k2 * r2 * r2
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([xd, yd], axis=1)
@@ -104,15 +111,19 @@ def _distort(xy: F64, dist: F64) -> F64:
 
 def _undistort(xyd: F64, dist: F64, iterations: int = 20) -> F64:
     """Invert :func:`_distort` by Newton's method (vectorised); exact to ~1e-12 for sane lenses."""
-    k1, k2, p1, p2 = dist
+    k1, k2, p1, p2, k3 = _coefficients(dist)
     if not np.any(dist):
         return xyd.copy()
     xy = xyd.copy()
     for _ in range(iterations):
         x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
-        radial = 1 + k1 * r2 + k2 * r2 * r2
-        drad = 2 * k1 + 4 * k2 * r2  # d(radial)/d(r2) * 2
+        if k3:
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            drad = 2 * k1 + 4 * k2 * r2 + 6 * k3 * r2 * r2  # d(radial)/d(r2) * 2
+        else:
+            radial = 1 + k1 * r2 + k2 * r2 * r2
+            drad = 2 * k1 + 4 * k2 * r2
         fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xyd[:, 0]
         fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - xyd[:, 1]
         j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
@@ -131,7 +142,7 @@ def _undistort(xyd: F64, dist: F64, iterations: int = 20) -> F64:
 
 @dataclass(frozen=True, eq=False)
 class PinholeCamera:
-    """Pinhole camera with OpenCV's radial (k1, k2) and tangential (p1, p2) distortion.
+    """Pinhole camera with OpenCV's radial (k1, k2, k3) and tangential (p1, p2) distortion.
 
     Parameters
     ----------
@@ -141,8 +152,10 @@ class PinholeCamera:
         Principal point.
     rvec, tvec : (3,) float, rad / mm
         Pose, world -> camera: ``X_cam = R(rvec) @ X_world + tvec``.
-    dist : (4,) float
-        (k1, k2, p1, p2), OpenCV's model on normalised coordinates.
+    dist : (4,) or (5,) float
+        (k1, k2, p1, p2) or OpenCV's 5-coefficient (k1, k2, p1, p2, k3), on normalised
+        coordinates (``cv2.calibrateCamera``'s ``distCoeffs.ravel()``). A k3 of 0 is dropped,
+        so a 5-coefficient model without k3 is stored, compared and written as 4.
     image_size : (W, H) int, px
     """
 
@@ -152,17 +165,23 @@ class PinholeCamera:
     cy: float
     rvec: tuple[float, float, float] = (0.0, 0.0, 0.0)
     tvec: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
     image_size: tuple[int, int] = (1280, 1024)
     _R: F64 = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rvec", tuple(float(x) for x in self.rvec))
         object.__setattr__(self, "tvec", tuple(float(x) for x in self.tvec))
-        object.__setattr__(self, "dist", tuple(float(x) for x in self.dist))
+        dist = tuple(float(x) for x in np.ravel(np.asarray(self.dist, dtype=np.float64)))
+        if len(dist) not in (4, 5) or not all(np.isfinite(dist)):
+            raise MultislitError(
+                f"dist must be 4 or 5 finite numbers, (k1, k2, p1, p2) or OpenCV's "
+                f"(k1, k2, p1, p2, k3), got {self.dist}"
+            )
+        if len(dist) == 5 and dist[4] == 0.0:
+            dist = dist[:4]
+        object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "image_size", (int(self.image_size[0]), int(self.image_size[1])))
-        if len(self.dist) != 4:
-            raise MultislitError(f"dist must be (k1, k2, p1, p2), got {self.dist}")
         if not (self.fx > 0 and self.fy > 0):
             raise MultislitError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         object.__setattr__(self, "_R", rotation_from_rvec(self.rvec))

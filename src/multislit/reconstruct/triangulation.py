@@ -4,7 +4,9 @@
 solve F = Q V (eq. 5-6) for V = (X, Y, Z), all points at once.
 
 :func:`triangulate` is the general form used with our calibration: undistort through the
-camera's lines of sight and intersect each with the plane of its slit.
+camera's lines of sight and intersect each with the plane of its slit. For a
+:class:`~multislit.geometry.PinholeCamera` this runs as one compiled loop over the points (the
+same undistortion and intersection, point by point).
 """
 
 from __future__ import annotations
@@ -12,10 +14,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import MultislitError
-from multislit.geometry import Camera, as_points, intersect_rays_planes
+from multislit.geometry import Camera, PinholeCamera, as_points, intersect_rays_planes
 
 F64 = NDArray[np.float64]
 
@@ -123,13 +126,100 @@ def triangulate(
             f"slit has values outside 0..{len(pl) - 1} (e.g. {int(s[bad][0])}; -1 = "
             "unidentified); the planes and the slit numbers do not belong together"
         )
+    min_cos = math.sin(math.radians(min_angle_deg))
+    if type(camera) is PinholeCamera:
+        pts = np.empty((len(p), 3))
+        valid = np.empty(len(p), bool)
+        _pinhole_points(
+            np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+            np.asarray(camera.dist_array, np.float64),
+            np.ascontiguousarray(camera.R, np.float64),
+            np.ascontiguousarray(camera.centre, np.float64),
+            np.ascontiguousarray(pl),
+            np.ascontiguousarray(p),
+            s,
+            min_cos,
+            pts,
+            valid,
+        )
+        return pts, valid
     known = s >= 0
     o, d = camera.rays(p)
     per = np.full((len(p), 4), np.nan)
     per[known] = pl[s[known]]
-    min_cos = math.sin(math.radians(min_angle_deg))
     with np.errstate(invalid="ignore"):
         pts, _ = intersect_rays_planes(o, d, per, min_cos=min_cos)
     valid = np.all(np.isfinite(pts), axis=1)
     pts[~valid] = np.nan
     return pts, valid
+
+
+#: Newton steps of the undistortion and the step below which it has converged (as
+#: :meth:`PinholeCamera.normalized`).
+_UNDISTORT_ITERATIONS = 20
+_UNDISTORT_TOL = 1e-14
+
+
+@njit(cache=True)
+def _pinhole_points(intr, dist, R, centre, planes, uv, slit, min_cos, pts, valid):
+    """:meth:`PinholeCamera.rays` and :func:`intersect_rays_planes` point by point: ``intr``
+    (fx, fy, cx, cy), ``dist`` (4 or 5 coefficients), ``R`` (3, 3) world -> camera,
+    ``centre`` (3,) mm, ``planes`` (K, 4), ``uv`` (N, 2) px, ``slit`` (N,) (-1: none); writes
+    ``pts`` (N, 3) mm (NaN where not valid) and ``valid`` (N,)."""
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    k1, k2, p1, p2 = dist[0], dist[1], dist[2], dist[3]
+    k3 = dist[4] if dist.size > 4 else 0.0
+    distorted = k1 != 0 or k2 != 0 or p1 != 0 or p2 != 0 or k3 != 0
+    for i in range(uv.shape[0]):
+        pts[i, 0] = pts[i, 1] = pts[i, 2] = np.nan
+        valid[i] = False
+        s = slit[i]
+        if s < 0:
+            continue
+        xd = (uv[i, 0] - cx) / fx
+        yd = (uv[i, 1] - cy) / fy
+        x, y = xd, yd
+        if distorted:
+            for _ in range(_UNDISTORT_ITERATIONS):
+                r2 = x * x + y * y
+                if k3:
+                    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                    drad = 2 * k1 + 4 * k2 * r2 + 6 * k3 * r2 * r2
+                else:
+                    radial = 1 + k1 * r2 + k2 * r2 * r2
+                    drad = 2 * k1 + 4 * k2 * r2
+                ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+                ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+                j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
+                j12 = x * y * drad + 2 * p1 * x + 2 * p2 * y
+                j22 = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
+                det = j11 * j22 - j12 * j12
+                dx = (j22 * ex - j12 * ey) / det
+                dy = (-j12 * ex + j11 * ey) / det
+                x -= dx
+                y -= dy
+                if max(abs(dx), abs(dy)) < _UNDISTORT_TOL:
+                    break
+        # direction R^T (x, y, 1), unit
+        d0 = x * R[0, 0] + y * R[1, 0] + R[2, 0]
+        d1 = x * R[0, 1] + y * R[1, 1] + R[2, 1]
+        d2 = x * R[0, 2] + y * R[1, 2] + R[2, 2]
+        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0 /= dl
+        d1 /= dl
+        d2 /= dl
+        n0, n1, n2, n3 = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3]
+        denom = n0 * d0 + n1 * d1 + n2 * d2
+        num = -((n0 * centre[0] + n1 * centre[1] + n2 * centre[2]) + n3)
+        dn = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) * math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if denom == 0 or abs(denom) <= min_cos * dn:
+            continue
+        t = num / denom
+        if not t >= 0:  # behind the camera, or NaN (a slit without a plane)
+            continue
+        X = centre[0] + t * d0
+        Y = centre[1] + t * d1
+        Z = centre[2] + t * d2
+        if math.isfinite(X) and math.isfinite(Y) and math.isfinite(Z):
+            pts[i, 0], pts[i, 1], pts[i, 2] = X, Y, Z
+            valid[i] = True

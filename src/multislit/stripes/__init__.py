@@ -19,7 +19,14 @@ scattered along them, by stage:
 
 :func:`extract_slits` runs the three steps. After identification, :func:`refine_centres`
 (:mod:`~multislit.stripes.refine`) re-centres the points for triangulation. :func:`as_image`
-is the package's check of a grayscale image argument.
+is the package's check of an image argument; a colour (H, W, 3) RGB image gives one plane,
+its ``channel`` (red by default, the laser's colour).
+
+Photos: the noise floor is one quantisation step of the data and the saturation level is
+read from the data's flat tops (:func:`~multislit.stripes.separation.clip_level`).
+``extract_slits(..., reject_texture=True)`` takes the row opening for the background and
+keeps only centres that look like a laser line (:func:`stripe_like`, :func:`texture_sigma`,
+:func:`along_slits`, linked over rows): edges, checker corners, texture and JPEG blocks go.
 
 Pixel convention: (u, v), u right (column), v down (row), (0, 0) the centre of the top-left
 pixel. Everything is vectorised over the whole image.
@@ -30,8 +37,11 @@ from multislit.stripes.centres import (
     DEFAULT_K_SIGMA,
     DEFAULT_V_SMOOTH,
     StripeCentres,
+    along_slits,
     estimate_noise,
     find_stripe_centres,
+    stripe_like,
+    texture_sigma,
 )
 from multislit.stripes.linking import (
     DEFAULT_MIN_LENGTH,
@@ -41,16 +51,19 @@ from multislit.stripes.linking import (
 )
 from multislit.stripes.refine import (
     REFINE_STEGER_SCALE,
+    compile_kernels,
     refine_centres,
     refine_half_rows,
     refine_slit_image,
 )
 from multislit.stripes.separation import (
+    BACKGROUNDS,
     STREAK_ANGLES_DEG,
     Separation,
     line_kernel,
     remove_streaks,
     row_median_background,
+    row_opening_background,
     separate,
     slope_sigma,
     stripe_slope,
@@ -62,11 +75,19 @@ from multislit.stripes.sizes import (
     estimate_stripe_width,
     median_stride,
     opening_length,
+    ridge_contrast,
 )
-from multislit.stripes.validation import SlitExtractionError, as_image
+from multislit.stripes.validation import CHANNELS, SlitExtractionError, as_image
 
 __all__ = [
     "as_image",
+    "CHANNELS",
+    "BACKGROUNDS",
+    "row_opening_background",
+    "ridge_contrast",
+    "stripe_like",
+    "texture_sigma",
+    "along_slits",
     "SlitExtractionError",
     "FWHM_PER_SIGMA",
     "CENTRE_METHODS",
@@ -96,4 +117,5 @@ __all__ = [
     "refine_slit_image",
     "refine_half_rows",
     "refine_centres",
+    "compile_kernels",
 ]

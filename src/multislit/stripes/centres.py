@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.separation import mask_runs
-from multislit.stripes.sizes import FWHM_PER_SIGMA
+from multislit.stripes.separation import mask_runs, quantisation_step
+from multislit.stripes.sizes import FWHM_PER_SIGMA, MIN_RIDGE_CONTRAST, ridge_contrast
 from multislit.stripes.validation import (
     SlitExtractionError,
     as_image,
@@ -54,15 +54,15 @@ def estimate_noise(image: ArrayLike) -> float:
 
     sigma = 1.4826 * MAD(diff) / sqrt(2); stripes and dots are a minority of the pixels. For a
     raw or highpass image; on a slit image (mostly exact zeros) it returns the quantisation /
-    residual level only, so prefer the highpass noise that :func:`extract_slits` uses.
+    residual level only (step / sqrt(12), :func:`~multislit.stripes.separation.
+    quantisation_step`: 0.29 for 8-bit data, never 0), so prefer the highpass noise that
+    :func:`extract_slits` uses.
     """
     img = as_image(image)
     d = np.diff(img[::2].astype(np.float32), axis=1)
     med = np.median(d)
     sigma = 1.4826 * float(np.median(np.abs(d - med))) / math.sqrt(2.0)
-    if np.issubdtype(img.dtype, np.integer):
-        sigma = max(sigma, 1.0 / math.sqrt(12.0))
-    return sigma
+    return max(sigma, quantisation_step(img) / math.sqrt(12.0))  # at least quantisation noise
 
 
 def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 1) -> F64:
@@ -132,11 +132,11 @@ def _window_offset(
 
 def _saturated_centres(
     slit: NDArray, sat: NDArray[np.bool_]
-) -> tuple[F64, F64, F64, F64, NDArray[np.bool_]]:
+) -> tuple[F64, F64, F64, F64, F64, NDArray[np.bool_]]:
     """Centres of saturated runs: weighted log-parabola fit to 2 unsaturated pixels per flank.
 
-    Returns u, v, peak, width of every run and the (H, W) mask of pixels within 1 px of a run
-    (no ordinary peak is taken there).
+    Returns u, v, peak, width, reach (px from the centre to the run's farther end) of every
+    run and the (H, W) mask of pixels within 1 px of a run (no ordinary peak is taken there).
     """
     h, w = sat.shape
     m = np.zeros((h, w + 2), np.int8)
@@ -147,7 +147,7 @@ def _saturated_centres(
     near = cv2.dilate(sat.view(np.uint8), np.ones((1, 3), np.uint8)).view(bool)
     if rs.size == 0:
         e = np.empty(0)
-        return e, e, e, e, near
+        return e, e, e, e, e, near
     mid = 0.5 * (c0 + c1)
     x = np.stack([c0 - 2, c0 - 1, c1 + 1, c1 + 2], axis=1).astype(np.float64)
     inside = (x >= 0) & (x <= w - 1)
@@ -174,7 +174,8 @@ def _saturated_centres(
     offs = np.arange(int((c1 - c0).max()) + 1)
     cols = np.minimum(c0[:, None] + offs[None, :], c1[:, None])
     peak = slit[rs[:, None], cols].astype(np.float64).max(1)
-    return u, rs.astype(np.float64), peak, width, near
+    reach = np.maximum(u - c0, c1 - u)  # from the centre to the farther end of the run
+    return u, rs.astype(np.float64), peak, width, reach, near
 
 
 def find_stripe_centres(
@@ -186,6 +187,7 @@ def find_stripe_centres(
     saturated: ArrayLike | None = None,
     stripe_width_px: float | None = None,
     v_smooth: int = DEFAULT_V_SMOOTH,
+    reject_texture: bool = False,
 ) -> StripeCentres:
     """Sub-pixel centre of every stripe in every row of a slit image.
 
@@ -200,7 +202,9 @@ def find_stripe_centres(
     - ``"steger"``: zero of the derivative of the Gaussian-smoothed row profile (Steger).
 
     Runs of ``saturated`` pixels give one centre each, from a weighted Gaussian fit to the two
-    unsaturated pixels on each flank (the run midpoint if the fit fails).
+    unsaturated pixels on each flank (the run midpoint if the fit fails). Centres that do not
+    look like a stripe (:func:`stripe_like`: edges, plateaus) are dropped with
+    ``reject_texture``, and so are centres a window method moves off the image.
 
     Parameters
     ----------
@@ -210,8 +214,13 @@ def find_stripe_centres(
     method : one of :data:`CENTRE_METHODS`
     k_sigma : detection threshold in noise sigmas
     saturated : (H, W) bool mask of saturated stripe pixels (:attr:`Separation.saturated`)
-    stripe_width_px : stripe FWHM (px) for ``centroid``/``steger``; default the median
-        Gaussian-fit width of the peaks
+    stripe_width_px : stripe FWHM (px) for ``centroid``/``steger`` and the stripe test;
+        default the median Gaussian-fit width of the peaks
+    v_smooth : rows (odd) averaged along the stripe for the sub-pixel fit; default
+        :data:`DEFAULT_V_SMOOTH`
+    reject_texture : drop the centres :func:`stripe_like` rejects (edges and plateaus, for
+        photos; it also drops ~0.25 % of the linked centres of the simulated rig's stripes);
+        default False
 
     Returns
     -------
@@ -238,7 +247,7 @@ def find_stripe_centres(
                 f"saturated must have the slit image's shape {s.shape}, got {sat.shape}"
             )
     return find_centres_validated(
-        s, noise_sigma * k_sigma, method, sat, sw, smoothing_taps(v_smooth)
+        s, noise_sigma * k_sigma, method, sat, sw, smoothing_taps(v_smooth), bool(reject_texture)
     )
 
 
@@ -249,7 +258,9 @@ def find_centres_validated(
     sat: NDArray[np.bool_],
     sw: float | None,
     taps: int = 1,
+    reject_texture: bool = False,
 ) -> StripeCentres:
+    """:func:`find_stripe_centres` on validated arguments; ``threshold`` in intensity units."""
     h, w = s.shape
     if w < 3:
         e = np.empty(0)
@@ -257,7 +268,7 @@ def find_centres_validated(
     mid = s[:, 1:-1]
     thr = math.floor(threshold) if np.issubdtype(s.dtype, np.integer) else threshold
     is_max = (mid > s[:, :-2]) & (mid >= s[:, 2:]) & (mid > thr)
-    su, sv, speak, swidth, near = _saturated_centres(s, sat)
+    su, sv, speak, swidth, sreach, near = _saturated_centres(s, sat)
     if sv.size:
         is_max &= ~near[:, 1:-1]
     r, c = np.nonzero(is_max)
@@ -269,21 +280,23 @@ def find_centres_validated(
     c = c + (j - 2)
     a, b, cc = vals[k, j - 1], vals[k, j], vals[k, j + 1]
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
+    fwhm = sw if sw is not None else float(np.nanmedian(width)) if r.size else 3.0
+    if not math.isfinite(fwhm):
+        fwhm = 3.0
     if method in ("centroid", "steger"):
-        fwhm = sw if sw is not None else float(np.nanmedian(width)) if r.size else 3.0
-        if not math.isfinite(fwhm):
-            fwhm = 3.0
         delta, _ = _window_offset(s, r, c, method, fwhm, taps)
     u = c + delta
     v = r.astype(np.float64)
+    reach = np.zeros(u.shape)
     if sv.size:
         keep = speak > thr
         u = np.concatenate([u, su[keep]])
         v = np.concatenate([v, sv[keep]])
         b = np.concatenate([b, speak[keep]])
         width = np.concatenate([width, swidth[keep]])
+        reach = np.concatenate([reach, sreach[keep]])
         order = np.lexsort((u, v))
-        u, v, b, width = u[order], v[order], b[order], width[order]
+        u, v, b, width, reach = u[order], v[order], b[order], width[order], reach[order]
     # one stripe, one centre: a dot or speckle on a stripe's flank can make a second local
     # maximum a px or two away; of two centres closer than half a stripe width keep the stronger
     min_sep = 0.5 * (sw if sw is not None and math.isfinite(sw) else 3.0)
@@ -295,5 +308,102 @@ def find_centres_validated(
         weaker = np.where(b[i] < b[i + 1], i, i + 1)
         keep = np.ones(len(u), bool)
         keep[weaker] = False
-        u, v, b, width = u[keep], v[keep], b[keep], width[keep]
-    return StripeCentres(u, v, b, width)
+        u, v, b, width, reach = u[keep], v[keep], b[keep], width[keep], reach[keep]
+    # a centre lies in the image (a window method can move it off the border pixel)
+    keep = (u >= -0.5) & (u <= w - 0.5)
+    if reject_texture:
+        keep &= stripe_like(s, u, v, fwhm, reach)
+    return StripeCentres(u[keep], v[keep], b[keep], width[keep])
+
+
+#: Largest angle (deg) between a stripe and the image's vertical that :func:`along_slits`
+#: keeps: the slits run roughly along v, and linking follows at most 1.5 px per row (56 deg).
+MAX_LEAN_DEG = 45.0
+
+
+def along_slits(slit_image: NDArray, u: F64, v: F64, stripe_width_px: float) -> NDArray[np.bool_]:
+    """Which centres lie on structure that runs roughly along the slits (image v).
+
+    The structure tensor of the slit image, integrated over a Gaussian of one stripe width,
+    gives the local direction of the intensity gradient: across a stripe it is along the row
+    (u); along a horizontal edge or at a checker corner's bright bits it is along v. A centre
+    is kept where the structure leans at most ``MAX_LEAN_DEG`` from v (J_vv <= tan^2 J_uu).
+
+    Parameters
+    ----------
+    slit_image : (H, W) slit image
+    u, v : (K,) centres (px; v integer rows)
+    stripe_width_px : stripe FWHM (px), the integration scale
+
+    Returns
+    -------
+    (K,) bool
+    """
+    if u.size == 0:
+        return np.ones(0, bool)
+    x = slit_image.astype(np.float32)
+    gu = cv2.Sobel(x, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(x, cv2.CV_32F, 0, 1, ksize=3)
+    r = np.rint(v).astype(np.intp)
+    c = np.clip(np.rint(u).astype(np.intp), 0, x.shape[1] - 1)
+    juu = cv2.GaussianBlur(gu * gu, (0, 0), stripe_width_px)[r, c]
+    jvv = cv2.GaussianBlur(gv * gv, (0, 0), stripe_width_px)[r, c]
+    return jvv <= math.tan(math.radians(MAX_LEAN_DEG)) ** 2 * juu
+
+
+#: Side of the blocks (in stripe widths, at least 16 px) over which :func:`texture_sigma`
+#: takes its medians.
+TEXTURE_BLOCK_WIDTHS = 4.0
+
+
+def texture_sigma(slit_image: NDArray, stripe_width_px: float) -> NDArray[np.float32]:
+    """(H, W) float32, the local level of texture in a slit image (intensity units, a sigma).
+
+    Stripes run along v, so the difference of the slit image and itself shifted by one
+    stripe width along v cancels them (like :func:`~multislit.stripes.separation.
+    noise_from_difference` cancels them in the image); texture, edges and blotches do not
+    cancel. 1.4826 / sqrt(2) times the median absolute difference over blocks of
+    ``TEXTURE_BLOCK_WIDTHS`` stripe widths, the largest of each block and its 8 neighbours,
+    is the level a stripe must stand out of: noise where the background is clean, more on a
+    textured surface.
+    """
+    h, w = slit_image.shape
+    lag = max(1, math.ceil(stripe_width_px))
+    b = max(16, math.ceil(TEXTURE_BLOCK_WIDTHS * stripe_width_px))
+    x = slit_image.astype(np.float32)
+    d = np.abs(x[lag:] - x[:-lag])
+    nb_v, nb_u = -(-h // b), -(-w // b)
+    pad = np.pad(d, ((0, nb_v * b - d.shape[0]), (0, nb_u * b - w)), mode="edge")
+    blocks = pad.reshape(nb_v, b, nb_u, b).transpose(0, 2, 1, 3).reshape(nb_v, nb_u, b * b)
+    level = np.median(blocks, axis=2).astype(np.float32) * (1.4826 / math.sqrt(2.0))
+    level = cv2.dilate(level, np.ones((3, 3), np.uint8))
+    return cv2.resize(level, (nb_u * b, nb_v * b), interpolation=cv2.INTER_NEAREST)[:h, :w]
+
+
+def stripe_like(
+    slit_image: NDArray, u: F64, v: F64, stripe_width_px: float, reach: F64 | float = 0.0
+) -> NDArray[np.bool_]:
+    """Which centres look like a laser line and not like an edge or texture.
+
+    A stripe stands out of the slit image (the row's background removed) on *both* sides:
+    :func:`~multislit.stripes.sizes.ridge_contrast` at least
+    :data:`~multislit.stripes.sizes.MIN_RIDGE_CONTRAST`. An edge
+    (checker, board or albedo step) and the inside of a plateau (a bright square narrower
+    than the row median) are as bright as the maximum on one or both sides, so their maxima
+    go; stripes, isolated or in a dense fan, keep ~1.
+
+    Parameters
+    ----------
+    slit_image : (H, W) slit image, background ~ 0
+    u, v : (K,) centres (px; v integer rows)
+    stripe_width_px : stripe FWHM (px): the sides are read 1 to 2 FWHM from the centre
+    reach : (K,) or scalar, px from each centre to the far end of its saturated run (0 for an
+        unsaturated peak): the sides are read from the ends of the flat top
+
+    Returns
+    -------
+    (K,) bool
+    """
+    r = np.rint(v).astype(np.intp)
+    c = np.clip(np.rint(u).astype(np.intp), 0, slit_image.shape[1] - 1)
+    return ridge_contrast(slit_image, r, c, stripe_width_px, reach) >= MIN_RIDGE_CONTRAST

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.sizes import (
@@ -15,7 +16,7 @@ from multislit.stripes.sizes import (
     median_stride,
     opening_length,
 )
-from multislit.stripes.validation import as_image, positive_px
+from multislit.stripes.validation import SlitExtractionError, as_image, positive_px
 
 F32 = NDArray[np.float32]
 
@@ -31,7 +32,8 @@ class Separation:
         the stripes only (d)
     dots : ``highpass - slits``: the dots only (e), >= 0
     saturated : (H, W) bool, pixels of saturated stripes (image >= saturation level, in vertical
-        runs at least as long as the opening line); all False for float images
+        runs at least as long as the opening line); all False for float images that do not
+        clip
     stripe_width_px : stripe FWHM (px) used to size the median
     dot_size_px : dot FWHM (px) used to size the opening
     """
@@ -46,41 +48,75 @@ class Separation:
 
 # Median of 9 by Devillard's 19 compare-exchange network ("Fast median search", 1998), pruned to
 # the 30 min/max operations whose results are used: (i, j, keep_min, keep_max).
-_MED9 = (
-    (1, 2, True, True), (4, 5, True, True), (7, 8, True, True), (0, 1, True, True),
-    (3, 4, True, True), (6, 7, True, True), (1, 2, True, True), (4, 5, True, True),
-    (7, 8, True, True), (0, 3, False, True), (5, 8, True, False), (4, 7, True, True),
-    (3, 6, False, True), (1, 4, False, True), (2, 5, True, False), (4, 7, True, False),
-    (4, 2, True, True), (6, 4, False, True), (4, 2, True, False),
-)  # fmt: skip
+@njit(cache=True)
+def _reflect101(i: int, n: int) -> int:
+    """cv2.BORDER_REFLECT_101 index (gfedcb|abcdefgh|gfedcba)."""
+    if n == 1:
+        return 0
+    while i < 0 or i >= n:
+        i = -i if i < 0 else 2 * n - 2 - i
+    return i
 
 
-def _median9(p: list[NDArray]) -> NDArray:
-    p = list(p)
-    for i, j, keep_min, keep_max in _MED9:
-        lo = cv2.min(p[i], p[j]) if keep_min else None
-        hi = cv2.max(p[i], p[j]) if keep_max else None
-        p[i], p[j] = lo, hi
-    return p[4]
+@njit(cache=True)
+def _row_median(img: NDArray, stride: int) -> NDArray:
+    """:func:`row_median_background`, row by row in one compiled pass."""
+    h, w = img.shape
+    pad = 4 * stride
+    idx = np.empty(w + 2 * pad, np.intp)
+    for k in range(w + 2 * pad):
+        idx[k] = _reflect101(k - pad, w) if pad < w else min(max(k - pad, 0), w - 1)
+    out = np.empty_like(img)
+    buf = np.empty(w + 2 * pad, img.dtype)
+    for r in range(h):
+        row = img[r]
+        for k in range(w + 2 * pad):
+            buf[k] = row[idx[k]]
+        o = out[r]
+        # 1-D views of the nine samples: the loop below vectorises
+        b0, b1, b2 = buf[0:w], buf[stride : stride + w], buf[2 * stride : 2 * stride + w]
+        b3, b4 = buf[3 * stride : 3 * stride + w], buf[4 * stride : 4 * stride + w]
+        b5, b6 = buf[5 * stride : 5 * stride + w], buf[6 * stride : 6 * stride + w]
+        b7, b8 = buf[7 * stride : 7 * stride + w], buf[8 * stride : 8 * stride + w]
+        for c in range(w):
+            p0, p1, p2, p3, p4 = b0[c], b1[c], b2[c], b3[c], b4[c]
+            p5, p6, p7, p8 = b5[c], b6[c], b7[c], b8[c]
+            # Devillard's median-of-9 network
+            p1, p2 = min(p1, p2), max(p1, p2)
+            p4, p5 = min(p4, p5), max(p4, p5)
+            p7, p8 = min(p7, p8), max(p7, p8)
+            p0, p1 = min(p0, p1), max(p0, p1)
+            p3, p4 = min(p3, p4), max(p3, p4)
+            p6, p7 = min(p6, p7), max(p6, p7)
+            p1, p2 = min(p1, p2), max(p1, p2)
+            p4, p5 = min(p4, p5), max(p4, p5)
+            p7, p8 = min(p7, p8), max(p7, p8)
+            p3 = max(p0, p3)
+            p5 = min(p5, p8)
+            p4, p7 = min(p4, p7), max(p4, p7)
+            p6 = max(p3, p6)
+            p4 = max(p1, p4)
+            p2 = min(p2, p5)
+            p4 = min(p4, p7)
+            p4, p2 = min(p4, p2), max(p4, p2)
+            p4 = max(p6, p4)
+            o[c] = min(p4, p2)
+    return out
 
 
 def row_median_background(image: NDArray, stride: int) -> NDArray:
     """Row-wise sparse median background, same dtype as ``image`` (H, W).
 
-    Median of the 9 pixels at u + stride * j (j = -4..4) of each row, by a sorting network
-    of 30 vectorised min/max passes. Like any median it keeps steps (albedo edges) sharp; the
-    image border is reflected.
+    Median of the 9 pixels at u + stride * j (j = -4..4) of each row, by a sorting network in
+    one compiled pass. Like any median it keeps steps (albedo edges) sharp; the image border
+    is reflected (replicated where the samples reach past a narrow image).
 
     Parameters
     ----------
     image : (H, W) uint8, uint16 or float32
     stride : sample spacing (px), e.g. :func:`~multislit.stripes.sizes.median_stride`
     """
-    h, w = image.shape
-    pad = 4 * stride
-    border = cv2.BORDER_REFLECT_101 if pad < w else cv2.BORDER_REPLICATE
-    p = cv2.copyMakeBorder(image, 0, 0, pad, pad, border)
-    return _median9([p[:, pad + j * stride : pad + j * stride + w] for j in range(-4, 5)])
+    return _row_median(np.ascontiguousarray(image), int(stride))
 
 
 def _running_extreme(x: NDArray, length: int, op: str) -> NDArray:
@@ -149,12 +185,83 @@ def remove_streaks(
     return cv2.subtract(dots, out)
 
 
+#: A float image is taken to resolve at most this many levels over its range (12 bits): the
+#: quantisation step of float data whose values do not show one.
+_FLOAT_LEVELS = 4096.0
+#: Rows sampled (every n-th) to find the quantisation step of float data.
+_STEP_SAMPLE = 4
+#: Clip detection: the top of the histogram is read in ``_CLIP_BINS`` quantisation steps; the
+#: bins from ``_CLIP_TAIL`` on are the tail below any clip. A clip is a top bin with at least
+#: ``_MIN_CLIP_PIXELS`` pixels and ``_CLIP_EXCESS`` times the tail's median count; a spread
+#: clip (JPEG rings around its flat tops, 250-255 for 255) extends down over at most
+#: ``_MAX_CLIP_SPREAD`` bins that each hold clearly more than the tail (twice, plus 3 sigma).
+_CLIP_BINS = 64
+_CLIP_TAIL = 16
+_MIN_CLIP_PIXELS = 20
+_CLIP_EXCESS = 4.0
+_MAX_CLIP_SPREAD = 12
+
+
+def quantisation_step(img: NDArray) -> float:
+    """The data's quantisation step (intensity units).
+
+    For integer data the lowest bit any pixel uses: 1 for ordinary 8- and 16-bit data, 16 for
+    12-bit data stored in the top bits of uint16. For float data the smallest step between
+    the values of every ``_STEP_SAMPLE``-th row (1/255 for 8-bit data scaled to [0, 1]), but
+    at least 1/4096 of their range.
+
+    Parameters
+    ----------
+    img : (H, W) validated image (uint8, uint16 or float32)
+    """
+    if np.issubdtype(img.dtype, np.integer):
+        bits = int(np.bitwise_or.reduce(img, axis=None))
+        return float(bits & -bits) if bits else 1.0
+    vals = np.unique(img[::_STEP_SAMPLE])
+    span = float(vals[-1] - vals[0])
+    floor = (span if span > 0 else max(abs(float(vals[0])), 1.0)) / _FLOAT_LEVELS
+    if vals.size < 2:
+        return floor
+    return max(float(np.min(np.diff(vals.astype(np.float64)))), floor)
+
+
+def clip_level(img: NDArray, step: float) -> float | None:
+    """The level at which ``img`` clips, read from the data; None if nothing clips.
+
+    A clip piles pixels up at the top of the histogram (flat tops of saturated stripes). A
+    clean clip puts them all on the maximum; a JPEG rings around it, spreading them over the
+    few values below (250-255 for 255), so the level is the lowest value of the pile-up.
+
+    Parameters
+    ----------
+    img : (H, W) validated image
+    step : quantisation step of ``img`` (:func:`quantisation_step`)
+    """
+    top = float(img.max())
+    x = img[img >= top - (_CLIP_BINS - 0.5) * step].astype(np.float64)
+    k = np.minimum(np.rint((top - x) / step).astype(np.intp), _CLIP_BINS - 1)
+    counts = np.bincount(k, minlength=_CLIP_BINS)
+    tail = float(np.median(counts[_CLIP_TAIL:]))
+    if counts[0] < max(_MIN_CLIP_PIXELS, _CLIP_EXCESS * tail):
+        return None
+    excess = 2.0 * tail + 3.0 * math.sqrt(tail) + 2.0
+    j = 0
+    while j + 1 < _MAX_CLIP_SPREAD and counts[j + 1] > excess:
+        j += 1
+    return top - j * step
+
+
 def _saturation_level(img: NDArray, saturation_level: float | None) -> float | None:
+    """The saturation level: the given one, else the data's clip level (:func:`clip_level`),
+    else the dtype maximum for integer images; None (no saturation) for float data that does
+    not clip."""
     if saturation_level is not None:
         return float(saturation_level)
+    level = clip_level(img, quantisation_step(img))
     if np.issubdtype(img.dtype, np.integer):
-        return float(np.iinfo(img.dtype).max)
-    return None
+        top = float(np.iinfo(img.dtype).max)
+        return top if level is None else min(level, top)
+    return level
 
 
 def mask_runs(d: NDArray[np.int8]) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
@@ -264,14 +371,45 @@ def _row_sample(img: NDArray, r: NDArray, u: NDArray) -> NDArray[np.float32]:
     return a + (b - a) * f
 
 
+#: Background estimators of :func:`separate`; the first is the default.
+BACKGROUNDS = ("median", "opening")
+#: Length of the row opening (``background="opening"``), in stripe widths: a Gaussian stripe
+#: falls to 1.3 % of its peak 1.25 FWHM from its centre, so the opening passes under it.
+OPENING_WIDTHS = 2.5
+
+
+def row_opening_background(image: NDArray, stripe_width_px: float) -> NDArray:
+    """Row-wise grey opening with a horizontal line of ``OPENING_WIDTHS`` stripe widths (odd,
+    px), same dtype as ``image`` (H, W).
+
+    The opening is the largest image below ``image`` that is made of flat pieces at least
+    that long: it passes under every narrower bright feature (a stripe) and follows wider ones
+    (checker squares, a board's margin) and every edge exactly, so ``image`` minus it (a white
+    top-hat) keeps the stripes and leaves no step, plateau or ripple.
+    """
+    length = 2 * math.ceil(OPENING_WIDTHS * stripe_width_px / 2.0) + 1
+    return cv2.morphologyEx(image, cv2.MORPH_OPEN, np.ones((1, length), np.uint8))
+
+
+def background_validated(img: NDArray, stripe_width_px: float, background: str) -> NDArray:
+    """The row background of :func:`separate`'s ``background`` method (validated arguments)."""
+    if background == "opening":
+        return row_opening_background(img, stripe_width_px)
+    return row_median_background(img, median_stride(stripe_width_px))
+
+
 def separate_validated(
-    img: NDArray, stripe_width_px: float, dot_size_px: float, saturation_level: float | None
+    img: NDArray,
+    stripe_width_px: float,
+    dot_size_px: float,
+    saturation_level: float | None,
+    background: str = "median",
 ) -> tuple[NDArray, NDArray, NDArray, float]:
     """Core of :func:`separate` on a validated image, native dtype (exact integer arithmetic).
 
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
-    bg = row_median_background(img, median_stride(stripe_width_px))
+    bg = background_validated(img, stripe_width_px, background)
     hp = cv2.subtract(img, bg)  # saturates at 0 for integer images
     if hp.dtype == np.float32:
         np.maximum(hp, 0, out=hp)
@@ -293,18 +431,29 @@ def separate_validated(
 
 
 def noise_from_difference(img: NDArray) -> float:
-    """Pixel noise sigma from differences of vertical neighbours.
+    """Pixel noise sigma from differences of vertical neighbours (intensity units).
 
     The stripes run along v, so a pixel minus the one below cancels them (and the background);
     what is left is noise, plus dots and stripe bends, which are a minority that the median
     ignores. Unlike the spread of ``img - bg`` this does not depend on how well the background
     was estimated (a row median lifted by dense stripes).
+
+    The result is at least one quantisation step of the data (:func:`quantisation_step`): a
+    JPEG smooths the noise away but leaves errors of about a step (block edges, ringing), and
+    the median of quantised differences collapses to 0 where most neighbours are equal.
     """
-    d = img[1::2].astype(np.float32) - img[:-1:2].astype(np.float32)
-    sigma = 1.4826 * float(np.median(np.abs(d))) / math.sqrt(2.0)
-    if np.issubdtype(img.dtype, np.integer):
-        sigma = max(sigma, 1.0 / math.sqrt(12.0))  # quantisation noise floor
-    return sigma
+    if img.dtype in (np.uint8, np.uint16) and img.shape[0] >= 2:
+        # integer data: the median from the histogram of the differences (no sort)
+        d = cv2.absdiff(img[1::2], img[:-1:2])
+        cum = np.cumsum(np.bincount(d.ravel()))
+        n = d.size
+        hi = int(np.searchsorted(cum, n // 2 + 1))  # the (n // 2)-th smallest (0-based)
+        med = hi if n % 2 else 0.5 * (int(np.searchsorted(cum, n // 2)) + hi)
+    else:
+        d = img[1::2].astype(np.float32) - img[:-1:2].astype(np.float32)
+        med = float(np.median(np.abs(d)))
+    sigma = 1.4826 * med / math.sqrt(2.0)
+    return max(sigma, quantisation_step(img))
 
 
 def separate(
@@ -313,18 +462,29 @@ def separate(
     dot_size_px: float | None = None,
     *,
     saturation_level: float | None = None,
+    channel: str = "red",
+    background: str = "median",
 ) -> Separation:
     """Split an image into stripes (slits) and dots on a flat background (paper Fig. 11).
 
     Parameters
     ----------
-    image : (H, W) uint8, uint16 or float grayscale
+    image : (H, W) grayscale or (H, W, 3) RGB image, uint8, uint16 or float
     stripe_width_px : stripe FWHM along the row (px); estimated by
         :func:`estimate_stripe_width` if None. Sizes the row median (:func:`median_stride`).
     dot_size_px : dot FWHM (px); estimated by :func:`estimate_dot_size` if None (falling back
         to the stripe width). Sizes the opening (:func:`opening_length`).
-    saturation_level : pixel value at which the camera saturates; default the dtype maximum
-        for integer images (pass e.g. 4095 for 12-bit data in uint16), none for float.
+    saturation_level : pixel value at which the camera saturates; default read from the data
+        (:func:`clip_level`: the pile-up of flat tops at the top of the histogram, e.g. 250
+        for a JPEG that rings around 255), else the dtype maximum for integer images and none
+        for float images.
+    channel : the plane of a colour image (:data:`~multislit.stripes.validation.CHANNELS`);
+        default ``"red"``
+    background : how the row background is estimated, one of :data:`BACKGROUNDS`:
+        ``"median"`` (default), the sparse row median (:func:`row_median_background`), or
+        ``"opening"``, the row opening (:func:`row_opening_background`) for photos of
+        checkerboards and other scenes whose bright patches are narrower than the median's
+        window (~8 stripe widths)
 
     Returns
     -------
@@ -336,15 +496,17 @@ def separate(
     SlitExtractionError
         bad image or sizes, or no stripe to estimate the width from.
     """
-    img = as_image(image)
+    img = as_image(image, channel=channel)
+    if background not in BACKGROUNDS:
+        raise SlitExtractionError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     sw = positive_px(stripe_width_px, "stripe_width_px")
     ds = positive_px(dot_size_px, "dot_size_px")
     if sw is None:
         sw = estimate_stripe_width(img)
     if ds is None:
-        hp0 = cv2.subtract(img, row_median_background(img, median_stride(sw)))
+        hp0 = cv2.subtract(img, background_validated(img, sw, background))
         ds = estimate_dot_size(hp0) or sw
-    hp, slits, sat, _ = separate_validated(img, sw, ds, saturation_level)
+    hp, slits, sat, _ = separate_validated(img, sw, ds, saturation_level, background)
     hpf = hp.astype(np.float32)
     sf = slits.astype(np.float32)
     return Separation(

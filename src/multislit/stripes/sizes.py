@@ -40,6 +40,9 @@ def opening_length(dot_size_px: float) -> int:
 # Scales (Gaussian sigma, px) searched by the ridge-scale estimator: sigma 0.6 .. 7.5 px covers
 # FWHM 1.4 .. 18 px, every practical stripe or dot size; ratio 1.25 with log-parabolic refinement.
 _SCALES = 0.6 * 1.25 ** np.arange(12)
+#: The strongest ridge of each profile is taken for the stripes' own width when the median of
+#: those differs from that of all ridges by more than this factor.
+_WIDTH_DISAGREEMENT = 1.5
 
 
 def _d2_kernel(sigma: float) -> NDArray[np.float32]:
@@ -102,7 +105,69 @@ def _ridge_fwhm(
     log_s[inner] += np.clip(off, -0.5, 0.5) * math.log(1.25)
     if log_s.size < 3:
         return None
-    return float(np.exp(np.median(log_s)) * FWHM_PER_SIGMA)
+    typical = float(np.median(log_s))
+    # the brightest ridge of each profile is a stripe: where the ridges at large are much
+    # narrower or wider (edges, texture and JPEG blocks outnumbering a few laser lines in a
+    # photo), the stripes' own width is taken
+    sk = st[keep]
+    order = np.lexsort((-sk, r))  # by row, strongest first
+    strong = np.zeros(r.size, bool)
+    strong[order[np.r_[True, r[order][1:] != r[order][:-1]]]] = True  # each row's strongest
+    if strong.sum() >= 3:
+        top = float(np.median(log_s[strong]))
+        if abs(top - typical) > math.log(_WIDTH_DISAGREEMENT):
+            typical = top
+    return float(np.exp(typical) * FWHM_PER_SIGMA)
+
+
+#: Least :func:`ridge_contrast` of a stripe (or dot): a Gaussian ridge has ~1, an edge or the
+#: inside of a plateau ~0.
+MIN_RIDGE_CONTRAST = 0.5
+
+
+def ridge_contrast(
+    profiles: NDArray,
+    r: NDArray[np.intp],
+    c: NDArray[np.intp],
+    fwhm_px: NDArray | float,
+    reach_px: NDArray | float = 0.0,
+) -> NDArray[np.float64]:
+    """How much a maximum of a background-free row profile stands out on both sides.
+
+    With p the value at (r, c) and L, R the lowest values from 1 to 2 FWHM left and right of
+    it (counted from the ends of a flat top reaching ``reach_px`` from c), the contrast is
+    (p - max(L, R)) / p: ~1 for a ridge (a stripe), ~0 for an edge or the inside of a
+    plateau (one or both sides as bright as the maximum). A side outside the image does not
+    count; with neither side inside, the contrast is 1.
+
+    Parameters
+    ----------
+    profiles : (R, N) image whose rows are the profiles, background ~ 0 (a slit image)
+    r, c : (K,) int, row and column of each maximum
+    fwhm_px : ridge FWHM (px), scalar or (K,)
+    reach_px : px from c to the far end of each flat top, scalar or (K,); 0 for a peak pixel
+
+    Returns
+    -------
+    (K,) float64, at most 1; 0 where p <= 0
+    """
+    n = profiles.shape[1]
+    fw = np.broadcast_to(np.asarray(fwhm_px, np.float64), r.shape)
+    d0 = np.maximum(1, np.ceil(fw)).astype(np.intp)
+    d1 = np.maximum(d0 + 1, np.ceil(2.0 * fw).astype(np.intp))
+    off = np.arange(int(d1.max(initial=2)) + 1)
+    reach = np.rint(np.broadcast_to(np.asarray(reach_px, np.float64), r.shape)).astype(np.intp)
+    use = (off[None, :] >= d0[:, None]) & (off[None, :] <= d1[:, None])
+    peak = profiles[r, np.clip(c, 0, n - 1)].astype(np.float64)
+    hi = np.full(r.shape, -np.inf)
+    for sign in (-1, 1):
+        cols = (c + sign * reach)[:, None] + sign * off[None, :]
+        inside = use & (cols >= 0) & (cols <= n - 1)
+        vals = profiles[r[:, None], np.clip(cols, 0, n - 1)].astype(np.float64)
+        side = np.where(inside, vals, np.inf).min(axis=1)
+        hi = np.maximum(hi, np.where(np.isinf(side), -np.inf, side))
+    hi = np.where(np.isinf(hi), 0.0, hi)  # no side inside the image
+    return np.where(peak > 0, (peak - hi) / np.where(peak > 0, peak, 1.0), 0.0)
 
 
 def _sample(n: int, count: int) -> NDArray[np.intp]:
@@ -112,15 +177,21 @@ def _sample(n: int, count: int) -> NDArray[np.intp]:
     return np.linspace(0, n - 1, count).round().astype(np.intp)
 
 
-def estimate_stripe_width(image: ArrayLike) -> float:
+def estimate_stripe_width(image: ArrayLike, *, channel: str = "red") -> float:
     """Estimate the typical stripe FWHM (px, along the row) of an image.
 
     Ridge scale selection (see ``_ridge_fwhm``) on 24 evenly spaced rows: the stripes are
     the dominant bright ridges along rows; the median over all of them is robust to dots.
 
+    Where edges, texture or JPEG blocks outnumber the stripes (a photo with one laser line),
+    the median of each profile's strongest ridge is taken instead when the two disagree by
+    more than 1.5 times.
+
     Parameters
     ----------
-    image : (H, W) uint8, uint16 or float
+    image : (H, W) grayscale or (H, W, 3) RGB image, uint8, uint16 or float
+    channel : the plane of a colour image (:data:`~multislit.stripes.validation.CHANNELS`);
+        default ``"red"``
 
     Returns
     -------
@@ -131,7 +202,7 @@ def estimate_stripe_width(image: ArrayLike) -> float:
     SlitExtractionError
         if the image is invalid or shows no stripe-like ridge.
     """
-    img = as_image(image)
+    img = as_image(image, channel=channel)
     idx = _sample(img.shape[0] - 1, 24)
     rows = img[idx].astype(np.float32)
     # pixel noise from vertical neighbours: the (near-vertical) stripes cancel, noise does not

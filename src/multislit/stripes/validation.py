@@ -14,28 +14,63 @@ class SlitExtractionError(IdentificationError):
     """Slit extraction cannot run on the given input (bad image or parameters)."""
 
 
-def as_image(image: ArrayLike, *, name: str = "image") -> NDArray:
-    """Check a grayscale image argument and return it in a dtype the pipeline works in.
+#: Colour channels :func:`as_image` can take from an (H, W, 3) RGB image; the first is the
+#: default (a red laser). ``"luma"`` is Rec. 601 luma, 0.299 R + 0.587 G + 0.114 B.
+CHANNELS = ("red", "green", "blue", "luma")
+_LUMA = (0.299, 0.587, 0.114)
+
+
+def _one_channel(arr: NDArray, channel: str, name: str) -> NDArray:
+    """The (H, W) plane ``channel`` of an (H, W, C) RGB or RGBA array, dtype kept."""
+    if arr.shape[2] == 1:
+        return arr[:, :, 0]
+    if arr.shape[2] not in (3, 4):
+        raise SlitExtractionError(
+            f"{name} must be a 2-D (H, W) grayscale or (H, W, 3) RGB array, got shape {arr.shape}"
+        )
+    if channel not in CHANNELS:
+        raise SlitExtractionError(f"channel must be one of {CHANNELS}, got {channel!r}")
+    if channel != "luma":
+        return arr[:, :, CHANNELS.index(channel)]
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
+        return arr[:, :, 0]  # the dtype check below names the problem
+    y = arr[:, :, 0] * _LUMA[0] + arr[:, :, 1] * _LUMA[1] + arr[:, :, 2] * _LUMA[2]
+    if np.issubdtype(arr.dtype, np.integer):
+        info = np.iinfo(arr.dtype)
+        return np.clip(np.rint(y), info.min, info.max).astype(arr.dtype)
+    return y
+
+
+def as_image(image: ArrayLike, *, name: str = "image", channel: str = "red") -> NDArray:
+    """Check an image argument and return it as one plane in a dtype the pipeline works in.
 
     Parameters
     ----------
-    image : (H, W) array, uint8, uint16, any other integer or float dtype
+    image : (H, W) grayscale or (H, W, 3) colour array (RGB order; an (H, W, 4) RGBA array's
+        alpha is ignored), uint8, uint16, any other integer or float dtype. Arrays from
+        ``cv2.imread`` are BGR: pass ``img[..., ::-1]``.
     name : the argument's name, used in error messages; default ``"image"``
+    channel : the plane of a colour image, one of :data:`CHANNELS`; default ``"red"`` (the
+        laser's colour: on a red laser's line the red channel has the most contrast); ignored
+        for a grayscale image
 
     Returns
     -------
-    (H, W) array: ``image`` itself if uint8 or uint16, else a float32 copy
+    (H, W) array: the plane itself if uint8 or uint16 (``image`` itself for a grayscale
+    image), else a float32 copy
 
     Raises
     ------
     SlitExtractionError
-        (a ``ValueError``) if ``image`` is not 2-D, is empty, is boolean or not numeric, or
-        holds NaN or infinite values.
+        (a ``ValueError``) if ``image`` is neither (H, W) nor (H, W, 3|4), is empty, is boolean
+        or not numeric, or holds NaN or infinite values, or ``channel`` is unknown.
     """
     arr = np.asarray(image)
+    if arr.ndim == 3:
+        arr = _one_channel(arr, channel, name)
     if arr.ndim != 2:
         raise SlitExtractionError(
-            f"{name} must be a 2-D (H, W) grayscale array, got shape {arr.shape}"
+            f"{name} must be a 2-D (H, W) grayscale or (H, W, 3) RGB array, got shape {arr.shape}"
         )
     if arr.size == 0:
         raise SlitExtractionError(f"{name} is empty (shape {arr.shape})")
