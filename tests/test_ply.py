@@ -193,3 +193,17 @@ def test_write_validation(tmp_path):
         write_ply(path, np.zeros((1, 3)), comment="a\nb")
     with pytest.raises(MultislitError, match="cannot write"):
         write_ply(tmp_path / "no" / "dir.ply", np.zeros((1, 3)))
+
+
+def test_written_files_get_the_usual_permissions(tmp_path):
+    """Atomic writes go through a private temporary file; the result is not left private."""
+    import os
+
+    from multislit.io import write_text_atomic
+
+    mask = os.umask(0o022)
+    try:
+        p = write_text_atomic(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(mask)
+    assert (p.stat().st_mode & 0o777) == 0o644

@@ -150,8 +150,8 @@ def test_cli_scan_and_holes(tmp_path, cap_dir, capsys):
     text = capsys.readouterr().out
     assert "holes:" in text and "points" in text and "dropped" in text
     assert (out / "holes.ply").is_file() and (out / "plane.ply").is_file()
-    assert main(["holes", str(out / "holes.ply")]) == 0
-    assert "geometric" in capsys.readouterr().out
+    assert main(["holes", str(out / "holes.ply")]) == 2  # biased from points alone: refused
+    assert "multislit holes" in capsys.readouterr().err  # ... with the command to use
     img = cap_dir / "scans" / "holes.png"
     assert main(["holes", str(cap_dir), "--image", str(img), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)

@@ -10,6 +10,7 @@ Units: mm in the world (target) frame, px in the image.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,7 @@ from multislit.calibrate.slit_planes import SlitPlanes
 from multislit.errors import CalibrationError, MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, camera_from_dict
 from multislit.geometry.camera import F64
-from multislit.io import json_safe, write_text_atomic
+from multislit.io import json_safe, parse_json, read_json, write_text_atomic
 
 #: The schema name of the calibration JSON.
 SCHEMA = "multislit-calibration/1"
@@ -110,57 +111,76 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, d: Any) -> Calibration:
-        """Read :meth:`to_dict`'s output; :class:`CalibrationError` if malformed."""
+        """Read :meth:`to_dict`'s output; :class:`CalibrationError` naming the bad key if malformed.
+
+        Every number is checked (finite, of the right shape); slit planes must have unit
+        normals (rows of null for slits without a plane) and at least one slit a plane.
+        """
         if not isinstance(d, dict):
             raise CalibrationError("calibration JSON must be an object")
         schema = d.get("schema")
         if schema != SCHEMA:
             raise CalibrationError(
-                f"calibration schema is {schema!r}; this version reads {SCHEMA!r} "
+                f"calibration schema is {_short(schema)}; this version reads {SCHEMA!r} "
                 "(recalibrate, or convert the file)"
             )
+        size = _image_size(_get(d, "image_size", "image_size"), "image_size")
+        dlt_d = _get(d, "camera_dlt", "camera_dlt")
+        _check_camera_dict(dlt_d, "matrix", "camera_dlt")
+        ref = d.get("camera_refined")
+        if ref is not None:
+            _check_camera_dict(ref, "pinhole", "camera_refined")
+        pm = d.get("projector_matrix")
+        if pm is not None:
+            if not isinstance(pm, dict):
+                raise CalibrationError("projector_matrix must be an object or null")
+            _numbers(_get(pm, "P", "projector_matrix.P"), "projector_matrix.P", (2, 4))
+            _numbers(
+                _get(pm, "xp_values", "projector_matrix.xp_values"),
+                "projector_matrix.xp_values",
+                (-1,),
+            )
+        sp = d.get("slit_planes")
+        if sp is not None:
+            _check_slit_planes(sp)
+        res = d.get("residuals")
+        if res is None:
+            res = {}
+        if not isinstance(res, dict):
+            raise CalibrationError("residuals must be an object")
+        markers = res.get("markers_px")
+        if markers is None:
+            markers = {}
+        if not isinstance(markers, dict):
+            raise CalibrationError("residuals.markers_px must be an object (marker id -> px)")
+        rms = {k: _number(res.get(k), f"residuals.{k}", null=True) for k in _RMS_KEYS}
+        mres = [
+            _number(v, f"residuals.markers_px[{_short(k)}]", null=True) for k, v in markers.items()
+        ]
         try:
-            dlt = camera_from_dict(d["camera_dlt"])
-            if not isinstance(dlt, MatrixCamera):
-                raise CalibrationError("camera_dlt must be a 'matrix' camera")
-            ref = d.get("camera_refined")
-            refined = None if ref is None else camera_from_dict(ref)
-            if refined is not None and not isinstance(refined, PinholeCamera):
-                raise CalibrationError("camera_refined must be a 'pinhole' camera")
-            pm = d.get("projector_matrix")
-            sp = d.get("slit_planes")
-            res = d.get("residuals") or {}
-            markers = res.get("markers_px") or {}
-
-            def num(v: Any) -> float:
-                return float("nan") if v is None else float(v)
-
             return cls(
-                image_size=tuple(d["image_size"]),
-                dlt=dlt,
-                refined=refined,
+                image_size=size,
+                dlt=camera_from_dict(dlt_d),
+                refined=None if ref is None else camera_from_dict(ref),
                 projector=None if pm is None else ProjectorMatrix.from_dict(pm),
                 slit_planes=None if sp is None else SlitPlanes.from_dict(sp),
-                camera_rms_px=num(res.get("camera_rms_px")),
-                dlt_rms_px=num(res.get("dlt_rms_px")),
+                camera_rms_px=rms["camera_rms_px"],
+                dlt_rms_px=rms["dlt_rms_px"],
                 marker_ids=tuple(markers),
-                marker_residuals_px=np.array([num(v) for v in markers.values()]),
+                marker_residuals_px=np.array(mres, dtype=float),
             )
+        except CalibrationError:
+            raise
         except MultislitError as exc:
-            if isinstance(exc, CalibrationError):
-                raise
             raise CalibrationError(f"malformed calibration: {exc}") from None
-        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError, AttributeError) as exc:
             raise CalibrationError(f"malformed calibration: missing or bad {exc!r}") from None
 
     @classmethod
-    def from_json(cls, s: str) -> Calibration:
-        """Read :meth:`to_json`'s output; :class:`CalibrationError` if malformed."""
-        try:
-            d = json.loads(s)
-        except json.JSONDecodeError as exc:
-            raise CalibrationError(f"calibration is not valid JSON: {exc}") from None
-        return cls.from_dict(d)
+    def from_json(cls, s: str | bytes) -> Calibration:
+        """Read :meth:`to_json`'s output (text, or UTF-8 bytes); :class:`CalibrationError` if
+        malformed."""
+        return cls.from_dict(parse_json(s, where="calibration", error=CalibrationError))
 
     def save(self, path: str | Path) -> Path:
         """Write the calibration as JSON, whole or not at all (folders are created).
@@ -177,7 +197,169 @@ class Calibration:
             raise CalibrationError(
                 f"calibration file not found: {p}; run the calibration first or fix the path"
             )
+        d = read_json(p, what="calibration file", error=CalibrationError)
         try:
-            return cls.from_json(p.read_text())
+            return cls.from_dict(d)
         except CalibrationError as exc:
             raise CalibrationError(f"{p}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- reading checks
+#: The residual keys of the file, px.
+_RMS_KEYS = ("camera_rms_px", "dlt_rms_px")
+
+#: A slit plane's normal may differ from unit length by this much (the file stores float64).
+_UNIT_TOLERANCE = 1e-6
+
+#: Largest component of a camera's rotation vector, rad (a rotation needs at most pi).
+_MAX_RVEC = 100.0
+
+#: Largest image side, px.
+_MAX_IMAGE_SIDE = 100_000
+
+
+def _short(v: Any, limit: int = 60) -> str:
+    """``repr(v)`` cut to ``limit`` characters, for messages."""
+    r = repr(v)
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
+def _get(d: dict[str, Any], key: str, where: str) -> Any:
+    if key not in d:
+        raise CalibrationError(f"malformed calibration: missing {where!r}")
+    return d[key]
+
+
+def _number(v: Any, where: str, *, null: bool = False) -> float:
+    """``v`` as a finite float (None -> NaN if ``null``), else :class:`CalibrationError`."""
+    if v is None and null:
+        return float("nan")
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise CalibrationError(
+            f"{where} must be a number{' or null' if null else ''}, got {_short(v)}"
+        )
+    try:
+        x = float(v)
+    except OverflowError:
+        x = float("inf")
+    if not math.isfinite(x):
+        raise CalibrationError(f"{where} must be finite, got {_short(v)}")
+    return x
+
+
+def _numbers(v: Any, where: str, shape: tuple[int, ...], *, null: bool = False) -> F64:
+    """A nested list of finite numbers of ``shape`` (-1: any length) as float64.
+
+    With ``null``, None entries become NaN.
+    """
+    if len(shape) == 0:
+        return np.array(_number(v, where, null=null))
+    if not isinstance(v, list) or (shape[0] >= 0 and len(v) != shape[0]):
+        n = "a list" if shape[0] < 0 else f"a list of {shape[0]}"
+        raise CalibrationError(f"{where} must be {n} (shape {shape}), got {_short(v)}")
+    rows = [_numbers(x, f"{where}[{i}]", shape[1:], null=null) for i, x in enumerate(v)]
+    return np.array(rows, dtype=float).reshape((len(v), *shape[1:]))
+
+
+def _image_size(v: Any, where: str) -> tuple[int, int]:
+    if (
+        not isinstance(v, list)
+        or len(v) != 2
+        or not all(
+            isinstance(x, int) and not isinstance(x, bool) and 0 < x <= _MAX_IMAGE_SIDE for x in v
+        )
+    ):
+        raise CalibrationError(f"{where} must be [W, H] in px, got {_short(v)}")
+    return int(v[0]), int(v[1])
+
+
+def _check_camera_dict(c: Any, model: str, where: str) -> None:
+    """Check a camera's JSON before it is built: its model, numbers and image size."""
+    if not isinstance(c, dict):
+        raise CalibrationError(f"{where} must be an object")
+    if c.get("model") != model:
+        raise CalibrationError(
+            f"{where} must be a {model!r} camera, got model {_short(c.get('model'))}"
+        )
+    _image_size(c.get("image_size"), f"{where}.image_size")
+    if model == "matrix":
+        C = _numbers(_get(c, "C", f"{where}.C"), f"{where}.C", (3, 4))
+        with np.errstate(all="ignore"):
+            det = np.linalg.det(C[:, :3])
+        if not abs(det) >= 1e-300:
+            raise CalibrationError(f"{where}.C is degenerate (its left 3x3 block is singular)")
+        return
+    for k in ("fx", "fy"):
+        if _number(_get(c, k, f"{where}.{k}"), f"{where}.{k}") <= 0:
+            raise CalibrationError(f"{where}.{k} must be positive, got {c[k]!r}")
+    for k in ("cx", "cy"):
+        _number(_get(c, k, f"{where}.{k}"), f"{where}.{k}")
+    for k in ("rvec", "tvec"):
+        if k in c:
+            _numbers(c[k], f"{where}.{k}", (3,))
+    if "rvec" in c and not np.all(np.abs(np.asarray(c["rvec"], dtype=float)) <= _MAX_RVEC):
+        raise CalibrationError(
+            f"{where}.rvec must be a rotation vector (radians, each within +-{_MAX_RVEC:g}), "
+            f"got {_short(c['rvec'])}"
+        )
+    if "dist" in c:
+        _numbers(c["dist"], f"{where}.dist", (-1,))
+
+
+def _check_slit_planes(sp: Any) -> None:
+    """Check the ``slit_planes`` JSON: unit normals or null rows, at least one plane, and the
+    per-slit arrays of the same length."""
+    where = "slit_planes"
+    if not isinstance(sp, dict):
+        raise CalibrationError(f"{where} must be an object or null")
+    planes = _numbers(_get(sp, "planes", f"{where}.planes"), f"{where}.planes", (-1, 4), null=True)
+    k = len(planes)
+    finite = np.isfinite(planes)
+    partial = np.flatnonzero(finite.any(axis=1) & ~finite.all(axis=1))
+    if len(partial):
+        raise CalibrationError(
+            f"{where}.planes[{partial[0]}] mixes numbers and nulls; a slit without a plane has "
+            "a row of four nulls"
+        )
+    valid = finite.all(axis=1)
+    if not valid.any():
+        raise CalibrationError(
+            f"{where}: no slit has a plane ({k} rows of nulls); recalibrate (multislit calibrate)"
+        )
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.linalg.norm(planes[valid, :3], axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > _UNIT_TOLERANCE)
+    if len(bad):
+        j = int(np.flatnonzero(valid)[bad[0]])
+        raise CalibrationError(
+            f"{where}.planes[{j}] has a normal of length {norms[bad[0]]:.6g}; slit planes are "
+            "n.X + d = 0 with |n| = 1 (recalibrate, or divide the row by |n|)"
+        )
+    _numbers(_get(sp, "rms_mm", f"{where}.rms_mm"), f"{where}.rms_mm", (k,), null=True)
+    counts = _get(sp, "counts", f"{where}.counts")
+    if (
+        not isinstance(counts, list)
+        or len(counts) != k
+        or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in counts)
+    ):
+        raise CalibrationError(f"{where}.counts must be {k} non-negative integers")
+    for key in ("axis_point", "axis_direction"):
+        if sp.get(key) is not None:
+            a = _numbers(sp[key], f"{where}.{key}", (3,))
+            with np.errstate(over="ignore"):
+                n = np.linalg.norm(a)
+            if key == "axis_direction" and not abs(n - 1.0) <= _UNIT_TOLERANCE:
+                raise CalibrationError(f"{where}.axis_direction must be a unit vector")
+    excluded = sp.get("excluded", [])
+    if not isinstance(excluded, list) or not all(
+        isinstance(e, list) and len(e) == 2 and _slit_number(e[0], k) and isinstance(e[1], str)
+        for e in excluded
+    ):
+        raise CalibrationError(f"{where}.excluded must be a list of [slit, reason]")
+    from_axis = sp.get("from_axis", [])
+    if not isinstance(from_axis, list) or not all(_slit_number(j, k) for j in from_axis):
+        raise CalibrationError(f"{where}.from_axis must be a list of slit numbers 0..{k - 1}")
+
+
+def _slit_number(j: Any, k: int) -> bool:
+    return isinstance(j, int) and not isinstance(j, bool) and 0 <= j < k

@@ -17,7 +17,9 @@
    came from (``origin``), and a slit the boards show that ends without a plane is an error.
 
 Automatic planes that the points do not support are never returned: the calibration falls back
-to the hand readings (and says so in the notes) or stops with an error.
+to the hand readings (and says so in the notes) or stops with an error. So are planes that pass
+through the camera (``calibration/slits.png`` showing a flat surface instead of the target) and
+hand readings of one slit that do not lie on one plane (a slit number off by one).
 :func:`write_calibration` saves the calibration with its report (the ``report`` key, which
 :meth:`Calibration.load` ignores); :func:`format_report` gives the report as text lines.
 
@@ -61,6 +63,13 @@ from multislit.identify import ReferenceSet, capture_reference
 from multislit.io import Capture, json_safe, write_json
 
 _SOURCES = ("auto", "hand")
+
+#: Lines of sight must meet the slit planes at this angle or more, degrees (the scans' default
+#: ``min_angle_deg``): planes through the camera centre come from a flat surface, not the target.
+_MIN_VIEW_ANGLE_DEG = 2.0
+
+#: The hand readings of one slit may lie this many local slit spacings (RMS) from its plane.
+_MAX_READING_SPACING = 0.25
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,8 +189,11 @@ def calibrate_capture(
     Raises
     ------
     CalibrationError
-        Bad ``source``, too few markers, no projector planes the data support, or a slit seen
-        on the reference boards that ends without a plane (named, with the reason).
+        Bad ``source``, too few markers, no projector planes the data support, a slit seen
+        on the reference boards that ends without a plane (named, with the reason), hand
+        readings of one slit that do not lie on one plane (the slit and the readings named:
+        a slit number off by one), or slit planes that pass through the camera (points of a
+        flat surface, not the target: every line of sight would graze them).
     """
     if source not in _SOURCES:
         raise CalibrationError(f"source must be 'auto' or 'hand', got {source!r}")
@@ -212,6 +224,13 @@ def calibrate_capture(
     boards, origin = None, plane_origins(fit, pts)
     if reference is not None:
         pts, fit, boards, origin = _add_boards(cap, cam, pts, fit, notes, reference)
+    if used_source == "hand":
+        bad = _hand_reading_problem(hand_slit_points(cap), fit.slit_planes.planes)
+        if bad:
+            raise CalibrationError(f"{cap.root / 'target.json'}: {bad}")
+    grazing = _grazing_problem(fit.slit_planes.planes, cam, pts)
+    if grazing:
+        raise CalibrationError(grazing + "; check calibration/slits.png and the slit readings")
     notes += _fit_notes(fit)
     res = cam.residuals
     calib = Calibration(
@@ -258,7 +277,96 @@ def _auto_projector(
         fit = fit_projector(pts, cap.num_slits)
     except CalibrationError as exc:
         return pts, None, str(exc)
-    return pts, fit, auto_fit_problem(fit, pts, cap.num_slits)
+    problem = auto_fit_problem(fit, pts, cap.num_slits)
+    if problem is None:
+        problem = _grazing_problem(fit.slit_planes.planes, cam, pts)
+        if problem:
+            problem += (
+                ": calibration/slits.png does not show the stripes on the target (a flat board "
+                "or another scene?)"
+            )
+    return pts, fit, problem
+
+
+def _view_angles(planes: np.ndarray, centre: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(K,) degrees: the angle at which lines of sight from the camera centre (3,) mm to
+    points at the median range of ``points`` (N, 3) mm meet each slit plane (K, 4) (NaN rows
+    give NaN)."""
+    rng = float(np.median(np.linalg.norm(points - centre, axis=1))) if len(points) else 1.0
+    dist = np.abs(planes[:, :3] @ centre + planes[:, 3])
+    return np.degrees(np.arcsin(np.clip(dist / max(rng, 1e-9), 0.0, 1.0)))
+
+
+def _grazing_problem(planes: np.ndarray, cam: CameraCalibration, pts: SlitPointSet) -> str | None:
+    """Why the slit planes cannot be triangulated with (they pass through the camera), or None.
+
+    Points of one flat surface seen by the camera, put on the target's faces, lie on the
+    planes through the camera centre and their stripes: planes fitted to them look perfect but
+    every line of sight grazes them, and scans keep no point.
+    """
+    valid = np.all(np.isfinite(planes), axis=1)
+    if not valid.any():
+        return None
+    camera = cam.refined if cam.refined is not None else cam.dlt
+    ang = _view_angles(planes[valid], camera.centre, pts.xyz)
+    med = float(np.median(ang))
+    if med >= _MIN_VIEW_ANGLE_DEG:
+        return None
+    return (
+        f"the slit planes pass through the camera: lines of sight meet them at {med:.2f} "
+        f"degrees (median over {int(valid.sum())} slits; a scan needs >= {_MIN_VIEW_ANGLE_DEG:g})"
+    )
+
+
+def _hand_reading_problem(pts: SlitPointSet, planes: np.ndarray) -> str | None:
+    """Which slits' hand readings do not lie on their slit's plane, and why, or None.
+
+    A reading of slit k lies on plane k; one given its neighbour's number lies a slit spacing
+    away and pulls plane k off the others. Slits whose readings lie more than
+    :data:`_MAX_READING_SPACING` local slit spacings (RMS) from their plane are named, with the
+    readings that lie nearer a neighbour's plane than their own.
+    """
+    k_all = len(planes)
+    X = np.c_[pts.xyz, np.ones(len(pts.xyz))]
+    signed = X @ planes.T  # (N, K) mm, NaN for slits without a plane
+    idx = np.arange(len(X))
+    own = np.abs(signed[idx, pts.slit])
+    lo = np.where(pts.slit > 0, signed[idx, np.maximum(pts.slit - 1, 0)], np.nan)
+    hi = np.where(pts.slit < k_all - 1, signed[idx, np.minimum(pts.slit + 1, k_all - 1)], np.nan)
+    mine = signed[idx, pts.slit]
+    spacing = np.where(
+        np.isfinite(lo) & np.isfinite(hi),
+        np.abs(hi - lo) / 2,
+        np.fmax(np.abs(lo - mine), np.abs(hi - mine)),
+    )
+    found = []
+    for k in np.unique(pts.slit):
+        m = (pts.slit == k) & np.isfinite(own)
+        sp = spacing[m][np.isfinite(spacing[m])]
+        if not m.any() or not len(sp):
+            continue
+        rms = float(np.sqrt(np.mean(own[m] ** 2)))
+        frac = rms / float(np.median(sp))
+        if frac <= _MAX_READING_SPACING:
+            continue
+        near = [
+            (int(i), k - 1 if abs(lo[i]) < abs(hi[i]) else k + 1)
+            for i in np.flatnonzero(m)
+            if np.nanmin([abs(lo[i]), abs(hi[i])]) < own[i]
+        ]
+        msg = f"slit {k}'s readings lie {rms:.2f} mm RMS ({frac:.2f} slit spacings) off one plane"
+        if near:
+            msg += ", and " + ", ".join(
+                f"slit_points[{i}] lies nearer slit {j}'s plane" for i, j in near[:4]
+            )
+        found.append(msg)
+    if not found:
+        return None
+    return (
+        "hand readings of different slits under one number? "
+        + "; ".join(found[:3])
+        + " (fix the 'slit' numbers of slit_points)"
+    )
 
 
 def _add_boards(

@@ -13,6 +13,7 @@ lines that all pass through it.
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,8 +24,9 @@ from numpy.typing import NDArray
 
 from multislit.errors import ReferenceImageError
 from multislit.identify.patches import normalise_patches, sample_patches, window_sums
-from multislit.io import Capture
+from multislit.io import Capture, write_bytes_atomic
 from multislit.stripes import SlitExtraction, extract_slits
+from multislit.stripes.validation import SlitExtractionError, as_image
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -216,9 +218,14 @@ class ReferenceSet:
         return ln / np.linalg.norm(ln[:, :2], axis=1, keepdims=True)
 
     def save(self, path: str | Path) -> None:
-        """Write the set to ``path`` (a compressed ``.npz``; the dot images as float16)."""
+        """Write the set to ``path`` (a compressed ``.npz``, the suffix added if missing; the dot
+        images as float16), whole or not at all."""
+        p = Path(path)
+        if p.suffix != ".npz":
+            p = p.with_name(p.name + ".npz")
+        buf = io.BytesIO()
         np.savez_compressed(
-            path,
+            buf,
             image_size=np.array(self.image_size),
             num_slits=self.num_slits,
             names=np.array(self.names),
@@ -233,6 +240,7 @@ class ReferenceSet:
             dot_density=self.dot_density,
             schema="multislit-reference/1",
         )
+        write_bytes_atomic(p, buf.getvalue())
 
     @classmethod
     def load(cls, path: str | Path) -> ReferenceSet:
@@ -333,7 +341,7 @@ def estimate_epipole(
     # robust: iteratively drop the worst tracks
     keep = np.ones(len(lines), bool)
     for _ in range(5):
-        _, _, vt = np.linalg.svd(lines[keep])
+        _, _, vt = np.linalg.svd(lines[keep], full_matrices=False)
         e = vt[-1]
         # distance of each track's points to the line through its first point and e
         l2 = np.cross(p1[use], e[None, :])
@@ -386,13 +394,30 @@ def prepare_reference(
     -------
     ReferenceSet, reused for every scan.
     """
+    if isinstance(images, str | bytes | Path) or not hasattr(images, "__len__"):
+        raise ReferenceImageError(
+            f"images must be a sequence of (H, W) arrays (the reference images), got "
+            f"{type(images).__name__}"
+        )
+    if isinstance(images, np.ndarray) and images.ndim < 3:
+        raise ReferenceImageError(
+            "images must be a sequence of (H, W) arrays (the reference images), got an "
+            f"array of shape {images.shape}"
+        )
     if len(images) < 2:
         raise ReferenceImageError(
             f"need >= 2 reference images at different distances, got {len(images)}"
         )
-    if not isinstance(num_slits, int | np.integer) or num_slits < 1:
+    if isinstance(num_slits, bool) or not isinstance(num_slits, int | np.integer) or num_slits < 1:
         raise ReferenceImageError(f"num_slits must be a positive integer, got {num_slits!r}")
     names = tuple(names) if names is not None else tuple(f"ref{i}" for i in range(len(images)))
+    if len(names) != len(images):
+        raise ReferenceImageError(f"names has {len(names)} names for {len(images)} images")
+    try:
+        for im, nm in zip(images, names, strict=True):
+            as_image(im, name=f"reference image {nm!r}")
+    except SlitExtractionError as exc:
+        raise ReferenceImageError(str(exc)) from None
     shapes = {np.shape(im) for im in images}
     if len(shapes) != 1:
         raise ReferenceImageError(f"reference images differ in size: {sorted(shapes)}")

@@ -12,7 +12,14 @@ from multislit.io.capture import (
     write_image,
     write_rig_json,
 )
-from multislit.io.jsonio import json_safe, write_bytes_atomic, write_json, write_text_atomic
+from multislit.io.jsonio import (
+    json_safe,
+    parse_json,
+    read_json,
+    write_bytes_atomic,
+    write_json,
+    write_text_atomic,
+)
 from multislit.io.ply import (
     PLY_SCALAR_TYPES,
     read_ply,
@@ -21,6 +28,8 @@ from multislit.io.ply import (
 
 __all__ = [
     "json_safe",
+    "parse_json",
+    "read_json",
     "write_bytes_atomic",
     "write_json",
     "write_text_atomic",

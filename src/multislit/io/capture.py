@@ -27,37 +27,57 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.errors import CaptureError
+from multislit.io.jsonio import read_json, write_bytes_atomic, write_json
 
 FORMAT = "multislit-capture/1"
 MIN_REFERENCES = 2
 
+#: Largest magnitude of a coordinate in target.json (mm for points, px for image positions):
+#: a rig measures within metres, so anything beyond is a typing error.
+_MAX_COORD = 1e6
+
+#: Largest image side in rig.json, px.
+_MAX_IMAGE_SIDE = 100_000
+
 
 # --------------------------------------------------------------------------- images
-def read_image(path: str | Path, expected_size: tuple[int, int] | None = None) -> NDArray:
-    """Read a grayscale 8- or 16-bit PNG.
+def read_image(
+    path: str | Path, expected_size: tuple[int, int] | None = None, *, channel: str = "red"
+) -> NDArray:
+    """Read an 8- or 16-bit image (PNG, or any format OpenCV reads) as one plane.
 
     Parameters
     ----------
     path : path of the image
     expected_size : (W, H) px, optional; a different size is an error
+    channel : the plane of a colour image: ``"red"`` (default, a red laser), ``"green"``,
+        ``"blue"`` or ``"luma"`` (Rec. 601); a grayscale image is returned as it is
 
     Returns
     -------
     image : (H, W) uint8 or uint16
     """
+    from multislit.stripes.validation import CHANNELS, as_image  # lazy: io loads first
+
     p = Path(path)
     if not p.is_file():
         raise CaptureError(f"image not found: {p}")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if channel not in CHANNELS:
+        raise CaptureError(f"channel must be one of {CHANNELS}, got {channel!r}")
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our message says it
+    try:
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if img is None:
         raise CaptureError(f"cannot read image {p}: not a valid PNG")
-    if img.ndim == 3:
-        if img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
-        else:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     if img.dtype not in (np.uint8, np.uint16):
         raise CaptureError(f"image {p} has pixel type {img.dtype}; expected 8- or 16-bit grayscale")
+    if img.ndim == 3:
+        if img.shape[2] not in (3, 4):
+            raise CaptureError(f"image {p} has {img.shape[2]} channels; expected 1, 3 or 4")
+        img = as_image(img[:, :, 2::-1], name=str(p), channel=channel)  # OpenCV's BGR -> RGB
     if expected_size is not None:
         w, h = expected_size
         if img.shape != (h, w):
@@ -69,27 +89,50 @@ def read_image(path: str | Path, expected_size: tuple[int, int] | None = None) -
 
 
 def write_image(path: str | Path, image: NDArray) -> None:
-    """Write a (H, W) uint8 or uint16 image as PNG, creating folders as needed."""
+    """Write a (H, W) uint8 or uint16 image as PNG, creating folders as needed.
+
+    The file is written whole or not at all (a temporary file, then a rename).
+    """
     img = np.asarray(image)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16):
         raise CaptureError(
             f"write_image needs a (H, W) uint8/uint16 array, got {img.dtype} {img.shape}"
         )
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(p), img):
-        raise CaptureError(f"cannot write image {p}")
+    try:
+        ok, buf = cv2.imencode(p.suffix or ".png", img)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise CaptureError(f"cannot write image {p}: OpenCV cannot encode {p.suffix!r} images")
+    try:
+        write_bytes_atomic(p, buf.tobytes())
+    except OSError as exc:
+        raise CaptureError(f"cannot write image {p}: {exc.strerror or exc}") from None
 
 
 # --------------------------------------------------------------------------- target
 def _vec(v: Any, n: int, where: str) -> tuple[float, ...]:
+    if not isinstance(v, list | tuple) or any(isinstance(x, bool | str) for x in v):
+        raise CaptureError(f"{where} must be a list of {n} numbers, got {_short(v)}")
     try:
         out = tuple(float(x) for x in v)
-    except (TypeError, ValueError):
-        raise CaptureError(f"{where} must be a list of {n} numbers, got {v!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise CaptureError(f"{where} must be a list of {n} numbers, got {_short(v)}") from None
     if len(out) != n or not all(math.isfinite(x) for x in out):
-        raise CaptureError(f"{where} must be a list of {n} finite numbers, got {v!r}")
+        raise CaptureError(f"{where} must be a list of {n} finite numbers, got {_short(v)}")
+    if any(abs(x) > _MAX_COORD for x in out):
+        raise CaptureError(
+            f"{where} = {_short(v)} is out of range: coordinates (mm, px) must lie within "
+            f"+-{_MAX_COORD:g}"
+        )
     return out
+
+
+def _short(v: Any, limit: int = 80) -> str:
+    """``repr(v)`` cut to ``limit`` characters, for messages."""
+    r = repr(v)
+    return r if len(r) <= limit else r[: limit - 3] + "..."
 
 
 @dataclass(frozen=True)
@@ -160,15 +203,20 @@ class Target:
     def from_dict(cls, d: Any, num_slits: int | None = None, where: str = "target.json") -> Target:
         if not isinstance(d, dict):
             raise CaptureError(f"{where}: expected a JSON object")
+        for key in ("markers", "faces", "slit_points"):
+            if d.get(key) is not None and not isinstance(d[key], list):
+                raise CaptureError(f"{where}: '{key}' must be a list, got {_short(d[key])}")
         markers = []
         seen: set[str] = set()
         for i, m in enumerate(d.get("markers") or []):
             w = f"{where}: markers[{i}]"
             if not isinstance(m, dict) or "id" not in m or "xyz" not in m or "uv_hint" not in m:
                 raise CaptureError(f"{w} needs 'id', 'xyz' and 'uv_hint'")
+            if isinstance(m["id"], bool) or not isinstance(m["id"], str | int):
+                raise CaptureError(f"{w}.id must be a string, got {_short(m['id'])}")
             mid = str(m["id"])
             if mid in seen:
-                raise CaptureError(f"{w}: duplicate marker id {mid!r}")
+                raise CaptureError(f"{w}: duplicate marker id {_short(mid)}")
             seen.add(mid)
             markers.append(
                 Marker(mid, _vec(m["xyz"], 3, f"{w}.xyz"), _vec(m["uv_hint"], 2, f"{w}.uv_hint"))
@@ -204,7 +252,7 @@ class Target:
                 raise CaptureError(f"{w} needs 'slit', 'xyz' and 'uv'")
             k = s["slit"]
             if not isinstance(k, int) or isinstance(k, bool):
-                raise CaptureError(f"{w}.slit must be an integer slit number, got {k!r}")
+                raise CaptureError(f"{w}.slit must be an integer slit number, got {_short(k)}")
             if num_slits is not None and not 0 <= k < num_slits:
                 raise CaptureError(
                     f"{w}.slit is {k}, but the rig has slits 0..{num_slits - 1}; fix the reading"
@@ -237,9 +285,27 @@ class Capture:
     def slits_image(self) -> Path:
         return self.root / "calibration" / "slits.png"
 
+    @property
+    def laser_channel(self) -> str:
+        """The plane read from colour images: rig.json's ``"laser_channel"`` (``"red"``,
+        ``"green"``, ``"blue"`` or ``"luma"``), default ``"red"``."""
+        from multislit.stripes.validation import CHANNELS
+
+        ch = self.rig.get("laser_channel", "red")
+        if ch not in CHANNELS:
+            raise CaptureError(
+                f"{self.root / 'rig.json'}: 'laser_channel' must be one of {list(CHANNELS)}, "
+                f"got {ch!r}"
+            )
+        return ch
+
     def image(self, path: str | Path) -> NDArray:
-        """Read one of this capture's images (any path), checking its size against rig.json."""
-        return read_image(path, self.image_size)
+        """Read one of this capture's images (any path), checking its size against rig.json.
+
+        A colour image is read as its :attr:`laser_channel` (red by default), the plane in
+        which the laser's line stands out most; grayscale images are read as they are.
+        """
+        return read_image(path, self.image_size, channel=self.laser_channel)
 
     @classmethod
     def open(cls, root: str | Path, require_target: bool = True) -> Capture:
@@ -257,24 +323,30 @@ class Capture:
         rig = _read_json(root / "rig.json")
         if not isinstance(rig, dict):
             raise CaptureError(f"{root / 'rig.json'}: expected a JSON object")
+        where = root / "rig.json"
         fmt = rig.get("format")
         if fmt != FORMAT:
             raise CaptureError(
-                f"{root / 'rig.json'}: 'format' is {fmt!r}; this reader understands {FORMAT!r}"
+                f"{where}: 'format' is {_short(fmt)}; this reader understands {FORMAT!r}"
             )
         size = rig.get("image_size")
         if (
             not isinstance(size, list)
             or len(size) != 2
-            or not all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in size)
+            or not all(
+                isinstance(x, int) and not isinstance(x, bool) and 0 < x <= _MAX_IMAGE_SIDE
+                for x in size
+            )
         ):
             raise CaptureError(
-                f"{root / 'rig.json'}: 'image_size' must be [W, H] in px, got {size!r}"
+                f"{where}: 'image_size' must be [W, H] in px (each 1..{_MAX_IMAGE_SIDE}), "
+                f"got {_short(size)}"
             )
         n = rig.get("num_slits")
-        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= max(size):
             raise CaptureError(
-                f"{root / 'rig.json'}: 'num_slits' must be a positive integer, got {n!r}"
+                f"{where}: 'num_slits' must be a positive integer (at most {max(size)}, the "
+                f"image's larger side in px), got {_short(n)}"
             )
         target = None
         tpath = root / "target.json"
@@ -291,12 +363,9 @@ class Capture:
 
 
 def _read_json(path: Path) -> Any:
-    if not path.is_file():
+    if not path.exists():
         raise CaptureError(f"missing file: {path}")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise CaptureError(f"{path} is not valid JSON: {exc}") from None
+    return read_json(path, what="capture file", error=CaptureError)
 
 
 def write_rig_json(
@@ -311,6 +380,4 @@ def write_rig_json(
         "num_slits": int(num_slits),
     }
     d.update(extra)
-    p = root / "rig.json"
-    p.write_text(json.dumps(d, indent=1))
-    return p
+    return write_json(root / "rig.json", d)

@@ -387,5 +387,10 @@ def _read_ascii(
                     f"{where}: property {name!r} declared {dtype.name} holds values that are not "
                     f"{dtype.name} integers"
                 )
+        elif np.any(np.abs(col[np.isfinite(col)]) > np.finfo(dtype).max):
+            raise MultislitError(
+                f"{where}: property {name!r} declared {dtype.name} holds values beyond its range "
+                f"(+-{np.finfo(dtype).max:.4g})"
+            )
         out[name] = col.astype(dtype)
     return out
