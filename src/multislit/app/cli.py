@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -32,16 +34,102 @@ def _progress(prefix: str):
     return cb
 
 
+#: The largest camera the simulator is asked for, in pixels (W x H). Its peak memory grows by
+#: about 0.35 GB per Mpx (0.64 GB at 1280x1024, 2.0 GB at 2560x2048: ``/usr/bin/time -v
+#: multislit simulate OUT --scene plane --scale 2``), so this is about 6 GB.
+_MAX_SIM_PIXELS = 16_000_000
+
+#: Simulator memory per camera pixel, bytes (see :data:`_MAX_SIM_PIXELS`).
+_SIM_BYTES_PER_PIXEL = 354
+
+
+def _check_seed(seed: int) -> None:
+    if seed < 0:
+        raise MultislitError(f"--seed must be a non-negative integer, got {seed}")
+
+
+def _check_sim_size(spec, option: str) -> None:
+    """Refuse a simulated camera too large for memory (``option`` names what set its size)."""
+    w, h = spec.camera.image_size
+    if w * h > _MAX_SIM_PIXELS:
+        gb = w * h * _SIM_BYTES_PER_PIXEL / 1e9
+        raise MultislitError(
+            f"{option} gives a {w}x{h} px camera ({w * h / 1e6:.1f} Mpx, about {gb:.0f} GB of "
+            f"memory to simulate); the limit is {_MAX_SIM_PIXELS / 1e6:.0f} Mpx (about "
+            f"{_MAX_SIM_PIXELS * _SIM_BYTES_PER_PIXEL / 1e9:.0f} GB): use a smaller one"
+        )
+
+
+def _check_output_dir(path: Path, option: str) -> None:
+    """Refuse an output folder that is a file or cannot be created (nothing is created here)."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise MultislitError(f"{option} {p} is a file, not a folder; give a folder")
+    parent = p
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise MultislitError(f"{option} {p}: cannot create a folder under {parent}, a file")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise MultislitError(f"{option} {p}: cannot write in {parent} (permission denied)")
+
+
+def _refuse_inputs(outputs: Sequence[Path], inputs: Sequence[Path], option: str) -> None:
+    """Refuse to write an output over one of the command's input files."""
+    seen = {}
+    for q in inputs:
+        if q.is_file():
+            seen[q.resolve()] = q
+    for out in outputs:
+        r = Path(out).resolve()
+        hit = seen.get(r)
+        if hit is None and r.exists():
+            hit = next((q for q in seen.values() if os.path.samefile(q, r)), None)
+        if hit is not None:
+            raise MultislitError(
+                f"the output {out} would overwrite an input of the command ({hit}); "
+                f"choose another {option}"
+            )
+
+
+def _capture_files(cap) -> list[Path]:
+    """The files of a capture folder that the commands read (never written over)."""
+    return [
+        cap.root / "rig.json",
+        cap.root / "target.json",
+        cap.markers_image,
+        cap.slits_image,
+        *cap.references,
+        *cap.scans,
+    ]
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from multislit.io import read_json
     from multislit.sim import SCENES, RigSpec, simulate_capture
 
-    spec = RigSpec.load(args.rig) if args.rig else RigSpec()
-    if args.slits:
-        from dataclasses import replace
+    _check_seed(args.seed)
+    _check_output_dir(Path(args.outdir), "OUTDIR")
+    if args.slits is not None and args.slits < 1:
+        raise MultislitError(f"--slits must be a positive number of slits, got {args.slits}")
+    if not math.isfinite(args.scale):
+        raise MultislitError(f"--scale must be a finite positive number, got {args.scale}")
+    try:
+        spec = RigSpec.from_dict(read_json(args.rig, what="rig file")) if args.rig else RigSpec()
+        if args.slits is not None:
+            from dataclasses import replace
 
-        spec = replace(spec, slits=replace(spec.slits, num_slits=args.slits))
-    if args.scale != 1.0:
-        spec = spec.scaled(args.scale)
+            spec = replace(spec, slits=replace(spec.slits, num_slits=args.slits))
+        if args.scale != 1.0:
+            spec = spec.scaled(args.scale)
+        spec.validate()
+    except (TypeError, ValueError, KeyError, AttributeError) as exc:
+        if isinstance(exc, MultislitError):
+            raise
+        raise MultislitError(
+            f"rig file {args.rig}: a value has the wrong type ({exc}); compare with 'multislit rig'"
+        ) from None
+    _check_sim_size(spec, f"--scale {args.scale:g}" if args.scale != 1.0 else "the rig file")
     scenes = list(SCENES) if args.scene == ["all"] else (args.scene or ["holes"])
     out = simulate_capture(
         args.outdir,
@@ -68,6 +156,8 @@ def cmd_rig(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from multislit.app.demo import run_demo
 
+    _check_seed(args.seed)
+    _check_output_dir(Path(args.out), "--out")
     result = run_demo(Path(args.out), seed=args.seed, scale=args.scale, progress=_progress("demo"))
     if args.json:
         print(json.dumps(result, indent=1))
@@ -79,10 +169,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from multislit.calibrate import calibrate_capture, format_report, write_calibration
+    from multislit.io import Capture
 
     capture = Path(args.capture)
-    result = calibrate_capture(capture, source=args.source)
     out = Path(args.output) if args.output else capture / "calibration.json"
+    if out.is_dir():
+        raise MultislitError(f"-o {out} is a folder; give the calibration file's name")
+    _check_output_dir(out.parent, "-o")
+    _refuse_inputs([out], _capture_files(Capture.open(capture)), "-o")
+    result = calibrate_capture(capture, source=args.source)
     write_calibration(result, out)
     for line in format_report(result):
         print(line)
@@ -103,6 +198,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
         )
     n = len(images) if images else len(cap.scans)
     outdir = Path(args.output) if args.output else cap.root / "points"
+    _check_output_dir(outdir, "-o")
+    cal_file = Path(args.calibration) if args.calibration else cap.root / "calibration.json"
+    outputs = [outdir / f"{p.stem}.ply" for p in (images or cap.scans)]
+    _refuse_inputs(outputs, [*_capture_files(cap), *(images or []), cal_file], "-o")
     results = scan_capture(
         cap,
         calibration=args.calibration,
@@ -110,16 +209,24 @@ def cmd_scan(args: argparse.Namespace) -> int:
         progress=_progress("scan") if n > 3 else None,
     )
     outdir.mkdir(parents=True, exist_ok=True)
+    failed = []
     for name, res in results.items():
+        if res.num_points == 0:
+            failed.append(f"{name}: {res.message or 'no points'}")
+            continue
         path = res.write_ply(outdir / f"{name}.ply", comment=f"multislit scan {name}")
         print(f"{res.summary()} -> {path}")
+    if failed:
+        raise MeasurementError(
+            f"{len(failed)} of {len(results)} scan(s) gave no points (no PLY written): "
+            + "; ".join(failed)
+        )
     return 0
 
 
 def cmd_holes(args: argparse.Namespace) -> int:
     from multislit.errors import MeasurementError
-    from multislit.measure import measure_holes, measure_holes_from_points
-    from multislit.reconstruct import ScanResult
+    from multislit.measure import measure_holes
 
     src = Path(args.source)
     measurements = {}
@@ -141,8 +248,7 @@ def cmd_holes(args: argparse.Namespace) -> int:
                 cap.image(path), ref, cal, min_slits=args.min_slits, name=path.stem
             )
     elif src.is_file():
-        res = ScanResult.from_ply(src)
-        measurements[src.stem] = measure_holes_from_points(res, min_slits=args.min_slits)
+        raise MeasurementError(_holes_from_ply_refused(src))
     else:
         raise MeasurementError(f"not a PLY file or capture folder: {src}")
     if args.json:
@@ -163,13 +269,110 @@ def cmd_holes(args: argparse.Namespace) -> int:
                 )
             else:
                 print(f"  hole {i}: near ({c}) mm, not measurable: {h.reason}")
-        if m.method == "geometric":
-            print(
-                "  (edges from the points only: the rows left unidentified at each stripe end "
-                "make holes come out too large, by millimetres; give the capture folder for "
-                "sub-pixel edges)"
-            )
     return 0
+
+
+def _camera_features(items: Sequence[str] | None) -> list[tuple[str, str]]:
+    from multislit.errors import MultislitError
+
+    out = []
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise MultislitError(f"--pylon {item!r}: give NAME=VALUE, e.g. ExposureTime=2000")
+        out.append((key, value))
+    return out
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    from multislit.app.stream import ProgressLine, stream
+
+    s = stream(
+        args.capture,
+        args.source,
+        args.output,
+        workers=args.workers,
+        max_frames=args.max_frames,
+        every=args.every,
+        on_bad_frame=args.on_bad_frame,
+        channel=args.channel,
+        calibration=args.calibration,
+        camera_features=_camera_features(args.pylon),
+        overwrite=args.overwrite,
+        progress=ProgressLine("stream: "),
+    )
+    print(f"wrote {s.frames} frame(s) to {s.out} ({s.skipped} skipped, {s.dropped} dropped)")
+    return 0
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from multislit.app.batch import batch
+    from multislit.app.stream import ProgressLine
+
+    s = batch(
+        args.capture,
+        args.source,
+        args.output,
+        address=args.dask,
+        workers=args.workers,
+        max_frames=args.max_frames,
+        every=args.every,
+        on_bad_frame=args.on_bad_frame,
+        channel=args.channel,
+        calibration=args.calibration,
+        overwrite=args.overwrite,
+        progress=ProgressLine("batch: "),
+    )
+    print(f"wrote {s.frames} frame(s) to {s.out} ({s.skipped} skipped)")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from multislit.app.view import write_view
+
+    path = write_view(args.source, args.output, color=args.color, max_points=args.max_points)
+    print(f"wrote {path}")
+    return 0
+
+
+def _frame_options(p: argparse.ArgumentParser) -> None:
+    from multislit.io.sources import CHANNELS
+
+    p.add_argument("capture", help="capture folder (rig.json, reference/, calibration.json)")
+    p.add_argument(
+        "source",
+        help="frames: an image folder or glob (PNG/TIFF/JPEG, 8/16 bit), a video file, "
+        "camera:N (OpenCV) or basler:[SERIAL] (pypylon)",
+    )
+    p.add_argument("-o", "--output", required=True, help="OUT folder for frame_*.ply, frames.jsonl")
+    p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--every", type=int, default=1, help="scan every K-th frame (default 1)")
+    p.add_argument(
+        "--on-bad-frame",
+        choices=["skip", "stop"],
+        default="skip",
+        help="a frame of the wrong size or unreadable: skip and count it (default) or stop",
+    )
+    p.add_argument(
+        "--channel",
+        choices=CHANNELS,
+        help="colour frames: the laser's channel (default rig.json laser_channel, else red)",
+    )
+    p.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
+    p.add_argument("--overwrite", action="store_true", help="replace frames already in OUT")
+
+
+def _holes_from_ply_refused(ply: Path) -> str:
+    """Why ``holes PLY`` is refused, with the command that measures the holes properly."""
+    cap, image = "CAPTURE", "CAPTURE/scans/NAME.png"
+    guess = ply.parent.parent  # 'multislit scan' writes CAPTURE/points/NAME.ply
+    if (guess / "rig.json").is_file() and (guess / "scans" / f"{ply.stem}.png").is_file():
+        cap, image = str(guess), str(guess / "scans" / f"{ply.stem}.png")
+    return (
+        f"{ply}: holes are not measured from a PLY: its points alone put the hole edges "
+        "millimetres outside the rims (the rows left unidentified at each stripe end); measure "
+        f"from the capture, whose images give sub-pixel edges: multislit holes {cap} --image {image}"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -229,8 +432,8 @@ def build_parser() -> argparse.ArgumentParser:
     ho = sub.add_parser("holes", help="measure holes in a flat plate (paper Table 1)")
     ho.add_argument(
         "source",
-        help="a PLY from 'multislit scan' (edges from the points) or a capture folder "
-        "(sub-pixel edges from the images)",
+        help="a capture folder (sub-pixel edges from its scan images); a PLY is refused, with "
+        "the command for its capture",
     )
     ho.add_argument("--image", help="with a capture: only this scan image")
     ho.add_argument("--calibration", help="with a capture: calibration file")
@@ -239,6 +442,34 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ho.add_argument("--json", action="store_true", help="print the results as JSON")
     ho.set_defaults(func=cmd_holes)
+
+    st = sub.add_parser("stream", help="scan a stream of frames: camera, video or images")
+    _frame_options(st)
+    st.add_argument("--workers", type=int, default=1, help="processes scanning frames (default 1)")
+    st.add_argument(
+        "--pylon",
+        action="append",
+        metavar="NAME=VALUE",
+        help="set a Basler camera feature (repeatable), e.g. ExposureTime=2000",
+    )
+    st.set_defaults(func=cmd_stream)
+
+    ba = sub.add_parser("batch", help="scan an archive of frames on a Dask cluster")
+    _frame_options(ba)
+    ba.add_argument("--dask", metavar="ADDRESS", help="Dask scheduler (default: a local cluster)")
+    ba.add_argument(
+        "--workers", type=int, default=2, help="local cluster workers (default 2; not with --dask)"
+    )
+    ba.set_defaults(func=cmd_batch)
+
+    vw = sub.add_parser("view", help="an interactive 3D view (HTML) of a PLY or an OUT folder")
+    vw.add_argument("source", help="a PLY file or an OUT folder of 'multislit stream'")
+    vw.add_argument("-o", "--output", required=True, help="HTML file to write")
+    vw.add_argument("--color", choices=["depth", "slit"], default="depth", help="initial colouring")
+    vw.add_argument(
+        "--max-points", type=int, default=50000, help="points drawn per frame (default 50000)"
+    )
+    vw.set_defaults(func=cmd_view)
 
     d = sub.add_parser("demo", help="the paper's experiment end to end on the simulated rig")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
@@ -256,6 +487,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except MultislitError as exc:
         print(f"multislit {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file system failure the command did not foresee
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"multislit {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -1,0 +1,496 @@
+"""Streams of frames in, one point cloud per frame out (``multislit stream``).
+
+The capture folder gives the calibration and the reference set, both prepared once; every frame
+of a SOURCE (:func:`multislit.io.sources.open_source`) is scanned with
+:func:`multislit.scan_image` and written to the OUT folder as it finishes::
+
+    OUT/frame_000000.ply   binary PLY, the vertex properties of 'multislit scan'
+    OUT/frame_000001.ply
+    OUT/frames.jsonl       one line per frame: frame, source, points, slits, ms
+
+Each PLY is written to a temporary name and renamed; its line in ``frames.jsonl`` is appended
+(one write, flushed) after it, so a killed run leaves whole frames and an index of exactly
+those. Frames are written in the source's order, also when several processes scan them.
+
+:func:`run_frames` is the loop; it takes a *runner* that scans frames (in this process, in a
+process pool, or on a Dask cluster, see :mod:`multislit.app.batch`).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from multislit.calibrate import Calibration
+from multislit.errors import MeasurementError
+from multislit.identify import ReferenceSet, capture_reference, template_size
+from multislit.io import Capture, json_safe, write_ply
+from multislit.io.sources import FrameSource, open_source
+from multislit.reconstruct import load_capture_calibration, scan_image
+
+__all__ = [
+    "FrameResult",
+    "FrameWriter",
+    "StreamSummary",
+    "ProgressLine",
+    "scan_frame",
+    "run_frames",
+    "stream",
+    "INDEX_FILE",
+    "frame_file",
+]
+
+#: The index of an OUT folder.
+INDEX_FILE = "frames.jsonl"
+_PROGRESS_EVERY_S = 5.0  # progress lines when stderr is not a terminal
+_INFLIGHT_PER_WORKER = 2  # frames queued per worker process for files and videos
+
+
+def frame_file(frame: int) -> str:
+    """The PLY file name of output frame ``frame``: ``frame_000000.ply``."""
+    return f"frame_{frame:06d}.ply"
+
+
+@dataclass(frozen=True, eq=False)
+class FrameResult:
+    """The points of one frame, as written to its PLY.
+
+    Attributes
+    ----------
+    points : (K, 3) float64, mm, target frame
+    u, v : (K,) float64, px, image position of each point
+    slit : (K,) int64, slit number of each point
+    confidence : (K,) float64, 0..1
+    slits : int, distinct slits among the points
+    ms : float, ms, time to scan the frame
+    """
+
+    points: NDArray[np.float64]
+    u: NDArray[np.float64]
+    v: NDArray[np.float64]
+    slit: NDArray[np.int64]
+    confidence: NDArray[np.float64]
+    slits: int
+    ms: float
+
+
+def scan_frame(
+    image: NDArray, reference: ReferenceSet, calibration: Calibration, *, name: str = ""
+) -> FrameResult:
+    """Scan one frame with :func:`multislit.scan_image` (the settings of ``multislit scan``).
+
+    Parameters
+    ----------
+    image : (H, W) uint8 or uint16, the calibrated size
+    reference, calibration : the capture's prepared reference set and calibration
+    name : str, a name for messages. Default ''.
+    """
+    t0 = time.perf_counter()
+    res = scan_image(image, reference, calibration, name=name)
+    ms = (time.perf_counter() - t0) * 1000.0
+    return FrameResult(res.points, res.u, res.v, res.slit, res.confidence, res.num_slits_found, ms)
+
+
+# --------------------------------------------------------------------------- output
+class FrameWriter:
+    """Writes frames to an OUT folder: the PLY whole, then its line in ``frames.jsonl``.
+
+    Parameters
+    ----------
+    out : folder (created if needed)
+    overwrite : bool
+        Remove the frames and index already in ``out`` first; without it, a folder that holds
+        frames is refused. Default False.
+    """
+
+    def __init__(self, out: str | os.PathLike[str], *, overwrite: bool = False) -> None:
+        self.out = Path(out)
+        if self.out.exists() and not self.out.is_dir():
+            raise MeasurementError(f"-o {self.out}: is a file; give a folder for the frames")
+        old = sorted(self.out.glob("frame_*.ply")) if self.out.is_dir() else []
+        if (self.out / INDEX_FILE).exists():
+            old.append(self.out / INDEX_FILE)
+        if old and not overwrite:
+            raise MeasurementError(
+                f"-o {self.out}: the folder already holds frames ({old[0].name}, ...); give an "
+                "empty folder or --overwrite"
+            )
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            for p in [*old, *self.out.glob(".frame_*.tmp")] if overwrite else []:
+                p.unlink()  # with the temporary files a killed run may leave
+            self._fd = os.open(
+                self.out / INDEX_FILE, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_TRUNC, 0o644
+            )
+        except OSError as exc:
+            raise MeasurementError(f"-o {self.out}: cannot write there ({exc})") from None
+        self.frames = 0
+
+    def write(self, source: str, result: FrameResult) -> Path:
+        """Write the next frame; returns its PLY path."""
+        path = self.out / frame_file(self.frames)
+        label = " ".join(str(source).split())
+        write_ply(
+            path,
+            result.points,
+            u=result.u,
+            v=result.v,
+            slit=result.slit,
+            confidence=result.confidence,
+            comment=f"multislit frame {self.frames} of {label}",
+        )
+        line = {
+            "frame": self.frames,
+            "source": str(source),
+            "points": int(len(result.points)),
+            "slits": int(result.slits),
+            "ms": round(float(result.ms), 1),
+        }
+        data = (json.dumps(json_safe(line)) + "\n").encode("utf-8")
+        os.write(self._fd, data)  # one append: the line is whole or absent
+        os.fsync(self._fd)
+        self.frames += 1
+        return path
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+
+# --------------------------------------------------------------------------- runners
+class Runner(Protocol):
+    """Scans frames somewhere: ``submit`` returns a handle, ``result`` waits for it."""
+
+    capacity: int
+
+    def submit(self, image: NDArray, name: str) -> Any: ...
+
+    def done(self, handle: Any) -> bool: ...
+
+    def result(self, handle: Any) -> FrameResult: ...
+
+    def close(self) -> None: ...
+
+
+class InlineRunner:
+    """Scans each frame at once in this process."""
+
+    capacity = 1
+
+    def __init__(self, reference: ReferenceSet, calibration: Calibration) -> None:
+        self.reference, self.calibration = reference, calibration
+
+    def submit(self, image: NDArray, name: str) -> FrameResult:
+        return scan_frame(image, self.reference, self.calibration, name=name)
+
+    def done(self, handle: FrameResult) -> bool:
+        return True
+
+    def result(self, handle: FrameResult) -> FrameResult:
+        return handle
+
+    def close(self) -> None:
+        pass
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def precompute_reference(reference: ReferenceSet) -> ReferenceSet:
+    """``reference`` with the data identification derives from it (window sums of the dot
+    images, their transposed copy) computed now, so that it travels with the set to worker
+    processes instead of being computed again in each."""
+    reference.window_sums(*template_size(reference))
+    reference.dots_transposed()
+    return reference
+
+
+def _init_worker(reference: ReferenceSet, calibration: Calibration) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    cv2.setNumThreads(1)  # a core per worker process: the processes are the parallelism
+    _WORKER["reference"], _WORKER["calibration"] = reference, calibration
+
+
+def _scan_in_worker(image: NDArray, name: str) -> FrameResult:
+    return scan_frame(image, _WORKER["reference"], _WORKER["calibration"], name=name)
+
+
+class ProcessRunner:
+    """Scans frames in ``workers`` processes; the reference and calibration go to each once."""
+
+    def __init__(
+        self, reference: ReferenceSet, calibration: Calibration, workers: int, *, live: bool
+    ) -> None:
+        self.capacity = workers if live else _INFLIGHT_PER_WORKER * workers
+        self._pool = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(precompute_reference(reference), calibration),
+        )
+
+    def submit(self, image: NDArray, name: str) -> Future:
+        return self._pool.submit(_scan_in_worker, image, name)
+
+    def done(self, handle: Future) -> bool:
+        return handle.done()
+
+    def result(self, handle: Future) -> FrameResult:
+        return handle.result()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+# --------------------------------------------------------------------------- the loop
+@dataclass(frozen=True)
+class StreamSummary:
+    """What a run did.
+
+    Attributes
+    ----------
+    frames : frames written
+    skipped : frames skipped (wrong size or unreadable)
+    dropped : live frames the camera delivered while the pipeline was busy (not scanned)
+    seconds : s, from the first frame read to the last written
+    out : the OUT folder
+    """
+
+    frames: int
+    skipped: int
+    dropped: int
+    seconds: float
+    out: Path
+
+    @property
+    def fps(self) -> float:
+        """Frames written per second."""
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+    def line(self, prefix: str = "") -> str:
+        return (
+            f"{prefix}{self.frames} frames, {self.fps:.2f} fps, {self.dropped} dropped, "
+            f"{self.skipped} skipped"
+        )
+
+
+class ProgressLine:
+    """The progress line on stderr (frames, fps, dropped, skipped): rewritten in place on a
+    terminal, a line every few seconds otherwise. Call it as ``progress`` of
+    :func:`run_frames`.
+
+    Parameters
+    ----------
+    prefix : str, the text before the counts, e.g. ``"stream: "``
+    """
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self.tty = sys.stderr.isatty()
+        self._last = 0.0
+
+    def __call__(self, s: StreamSummary, final: bool = False) -> None:
+        now = time.perf_counter()
+        if self.tty:
+            sys.stderr.write("\r" + s.line(self.prefix) + ("\n" if final else ""))
+        elif final or now - self._last >= _PROGRESS_EVERY_S:
+            sys.stderr.write(s.line(self.prefix) + "\n")
+            self._last = now
+        sys.stderr.flush()
+
+
+def run_frames(
+    source: FrameSource,
+    writer: FrameWriter,
+    runner: Runner,
+    *,
+    image_size: tuple[int, int],
+    max_frames: int | None = None,
+    on_bad_frame: str = "skip",
+    progress: Callable[..., None] | None = None,
+) -> StreamSummary:
+    """Scan the frames of ``source`` with ``runner`` and write them in order with ``writer``.
+
+    Parameters
+    ----------
+    source : an opened frame source (closed by the caller)
+    writer : the OUT folder's writer (closed by the caller)
+    runner : scans frames (:class:`InlineRunner`, :class:`ProcessRunner`, a Dask runner)
+    image_size : (W, H) px, the calibrated size; other frames are bad frames
+    max_frames : int, optional
+        Stop after this many frames are written. Default: the whole source.
+    on_bad_frame : {'skip', 'stop'}
+        A frame of the wrong size or that cannot be read: skip it and count it, or stop with
+        an error (after writing the frames before it). Default skip.
+    progress : called as ``progress(summary)`` as frames finish and
+        ``progress(summary, final=True)`` at the end. Default none.
+
+    Returns
+    -------
+    StreamSummary
+
+    Raises
+    ------
+    MeasurementError
+        A bad frame with ``on_bad_frame='stop'``; errors of the source or of a frame's scan.
+    """
+    w, h = image_size
+    pending: deque[tuple[str, Any]] = deque()
+    skipped = 0
+    t0: float | None = None
+    frames = source.frames()
+
+    def summary() -> StreamSummary:
+        dt = time.perf_counter() - t0 if t0 is not None else 0.0
+        return StreamSummary(writer.frames, skipped, source.dropped, dt, writer.out)
+
+    def write_head() -> None:
+        name, handle = pending.popleft()
+        writer.write(name, runner.result(handle))
+        if progress:
+            progress(summary())
+
+    while True:
+        while len(pending) >= runner.capacity:
+            write_head()
+        while pending and runner.done(pending[0][1]):
+            write_head()
+        if max_frames is not None and writer.frames + len(pending) >= max_frames:
+            break
+        fr = next(frames, None)
+        if fr is None:
+            break
+        if t0 is None:
+            t0 = time.perf_counter()
+        problem = fr.error
+        if not problem and fr.image is not None and fr.image.shape != (h, w):
+            problem = (
+                f"frame {fr.source} is {fr.image.shape[1]}x{fr.image.shape[0]} px but the "
+                f"calibration is for {w}x{h} px"
+            )
+        if problem:
+            if on_bad_frame == "stop":
+                while pending:  # the frames before it are written
+                    write_head()
+                raise MeasurementError(f"{problem} (--on-bad-frame skip to skip such frames)")
+            skipped += 1
+            continue
+        pending.append((fr.source, runner.submit(fr.image, fr.source)))
+    while pending:
+        write_head()
+    out = summary()
+    if progress:
+        progress(out, final=True)
+    return out
+
+
+# --------------------------------------------------------------------------- stream
+def laser_channel(capture: Capture, channel: str | None) -> str:
+    """``channel`` if given, else the capture's (:attr:`~multislit.io.Capture.laser_channel`:
+    rig.json's ``laser_channel``, else red)."""
+    return channel if channel is not None else capture.laser_channel
+
+
+def _positive(x: int | None, name: str, allow_none: bool = False) -> None:
+    if x is None and allow_none:
+        return
+    if isinstance(x, bool) or not isinstance(x, int) or x < 1:
+        flag = "--" + name.replace("_", "-")
+        raise MeasurementError(f"{name} ({flag}) must be an integer >= 1, got {x!r}")
+
+
+def stream(
+    capture: str | os.PathLike[str] | Capture,
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    workers: int = 1,
+    max_frames: int | None = None,
+    every: int = 1,
+    on_bad_frame: str = "skip",
+    channel: str | None = None,
+    calibration: str | os.PathLike[str] | None = None,
+    camera_features: Sequence[tuple[str, str]] = (),
+    overwrite: bool = False,
+    progress: Callable[..., None] | None = None,
+) -> StreamSummary:
+    """Scan every frame of ``source`` and write ``out`` (see the module's text).
+
+    Parameters
+    ----------
+    capture : the capture folder (rig.json, reference/, calibration.json) or an opened Capture
+    source : a folder or glob of images, a video file, ``camera:N``, ``basler:[SERIAL]``
+    out : the OUT folder
+    workers : int
+        Processes that scan frames; 1 (default) scans in this process.
+    max_frames : int, optional
+        Stop after this many frames. Default: all.
+    every : int
+        Scan every ``every``-th frame of the source. Default 1.
+    on_bad_frame : {'skip', 'stop'}
+        Frames of the wrong size or unreadable: skip and count, or stop. Default skip.
+    channel : {'red', 'green', 'blue', 'luma'}, optional
+        The laser's channel in colour frames. Default: rig.json's ``laser_channel``, else red.
+    calibration : calibration file. Default ``CAPTURE/calibration.json``.
+    camera_features : (name, value) pairs set on a Basler camera. Default none.
+    overwrite : bool
+        Replace the frames already in ``out``. Default False.
+    progress : see :func:`run_frames`
+
+    Raises
+    ------
+    MultislitError
+        A bad capture, calibration, SOURCE, option or (with ``on_bad_frame='stop'``) frame.
+    """
+    _positive(workers, "workers")
+    _positive(every, "every")
+    _positive(max_frames, "max_frames", allow_none=True)
+    if on_bad_frame not in ("skip", "stop"):
+        raise MeasurementError(f"on_bad_frame must be 'skip' or 'stop', got {on_bad_frame!r}")
+    cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
+    cal = load_capture_calibration(cap, calibration)
+    src = open_source(
+        source,
+        channel=laser_channel(cap, channel),
+        every=every,
+        image_size=cap.image_size,
+        features=camera_features,
+    )
+    writer = runner = None
+    try:
+        writer = FrameWriter(out, overwrite=overwrite)
+        ref = capture_reference(cap)
+        if workers == 1:
+            runner = InlineRunner(ref, cal)
+        else:
+            runner = ProcessRunner(ref, cal, workers, live=src.live)
+        return run_frames(
+            src,
+            writer,
+            runner,
+            image_size=cap.image_size,
+            max_frames=max_frames,
+            on_bad_frame=on_bad_frame,
+            progress=progress,
+        )
+    finally:
+        src.close()
+        if runner is not None:
+            runner.close()
+        if writer is not None:
+            writer.close()
