@@ -1,18 +1,30 @@
 """Single-shot pipeline speed per frame at full size (1280x1024), one core.
 
-Stages timed per frame: slit/dot extraction, identification, centre refinement (what
-``scan_image`` does by default), triangulation; the reference is prepared beforehand (once per
-rig). The slit planes and camera for triangulation are the
-simulator's true models (the timing does not depend on their values). The floor a frame cannot
-beat is one cv2.medianBlur pass over the same frame.
+Stages timed per frame, from the image array to 3D points: slit/dot extraction,
+identification, centre refinement (what ``scan_image`` does by default), triangulation. The
+slit planes and camera for triangulation are the simulator's true models (the timing does not
+depend on their values). The floor a frame cannot beat is one ``cv2.medianBlur`` (5x5) pass
+over the same frame, timed in the same run next to each frame: the ratio total / medianBlur is
+the figure that holds on a busy machine, where absolute times are not.
 
-Run:  .venv/bin/python benchmarks/bench_speed.py [--slits 25 49] [--repeat 7]
-(OpenCV is pinned to one thread and the BLAS behind NumPy's matrix products too -- the script
-re-executes itself with OPENBLAS/OMP/MKL_NUM_THREADS=1: "one core".)
+Reported per rig (25 and 49 slits): the median over ``--repeat`` runs of each scan (scenes
+``holes`` and ``steps``) of the ms per stage, the total, the medianBlur ms, the ratio, points
+per second, and the peak memory of one frame; the time to prepare the reference
+(``prepare_reference`` on the capture's reference images, once per rig).
 
-Identification uses data derived from the reference alone (window sums of the dot images, a
-transposed copy), built on first use and kept with the reference: once per rig. It is timed
-separately ("reference precompute") and not part of the per-frame times.
+Memory: "peak MB" is tracemalloc's peak of the Python and NumPy allocations during one frame
+(arrays made by OpenCV's Python bindings and the compiled kernels' work arrays included,
+OpenCV's internal buffers not), measured in a separate, untimed run; "max RSS" is the
+process's resident-set high-water mark at the end (``resource.getrusage``: interpreter,
+libraries, the simulated captures and the reference included).
+
+Compiled kernels (Numba) are loaded or compiled before timing: every frame runs once,
+untimed, first.
+
+Run:  .venv/bin/python benchmarks/bench_speed.py [--slits 25 49] [--repeat 5] [--write]
+(OpenCV is pinned to one thread and the BLAS behind NumPy and Numba too -- the script
+re-executes itself with OPENBLAS/OMP/MKL/NUMBA_NUM_THREADS=1: "one core". ``--write``
+replaces the speed section of benchmarks/RESULTS.md.)
 """
 
 from __future__ import annotations
@@ -20,25 +32,56 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import sys
 import tempfile
 import time
+import tracemalloc
 from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from multislit.geometry import PinholeCamera
-from multislit.identify import identify, prepare_reference, template_size
-from multislit.io import Capture
-from multislit.reconstruct import triangulate
-from multislit.sim import RigSpec, simulate_capture
-from multislit.stripes import extract_slits, refine_centres
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from results import command_line, write_section  # noqa: E402
+
+from multislit.geometry import PinholeCamera  # noqa: E402
+from multislit.identify import identify, prepare_reference  # noqa: E402
+from multislit.io import Capture  # noqa: E402
+from multislit.reconstruct import triangulate  # noqa: E402
+from multislit.sim import RigSpec, simulate_capture  # noqa: E402
+from multislit.stripes import extract_slits, refine_centres  # noqa: E402
+
+STAGES = ("extract", "identify", "refine", "triangulate")
 
 
-def run(num_slits: int, repeat: int, workdir: Path) -> dict:
+def frame(img, ref, cam, planes) -> tuple[list[float], int]:
+    """One frame through the pipeline: the seconds of each stage and the valid 3D points."""
+    t0 = time.perf_counter()
+    ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
+    t1 = time.perf_counter()
+    ident = identify(img, ref, extraction=ex)
+    t2 = time.perf_counter()
+    u, _ = refine_centres(img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px)
+    t3 = time.perf_counter()
+    ok = ident.identified
+    _, valid = triangulate(cam, planes, np.c_[u[ok], ident.v[ok]], ident.slit[ok])
+    t4 = time.perf_counter()
+    return [t1 - t0, t2 - t1, t3 - t2, t4 - t3], int(valid.sum())
+
+
+def median_blur_s(img: np.ndarray, passes: int = 3) -> float:
+    """Seconds of one cv2.medianBlur 5x5 pass: the mean of ``passes`` passes in a row."""
+    t0 = time.perf_counter()
+    for _ in range(passes):
+        cv2.medianBlur(img, 5)
+    return (time.perf_counter() - t0) / passes
+
+
+def run(num_slits: int, repeat: int, workdir: Path) -> tuple[list[dict], dict]:
     spec = RigSpec()
     if num_slits != 25:
         spec = replace(
@@ -46,61 +89,85 @@ def run(num_slits: int, repeat: int, workdir: Path) -> dict:
         )
     cap_dir = simulate_capture(workdir / f"cap{num_slits}", ["holes", "steps"], spec, seed=1)
     cap = Capture.open(cap_dir)
-    ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+    refs = [cap.image(p) for p in cap.references]
+    prep = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        ref = prepare_reference(refs, cap.num_slits)
+        prep.append(time.perf_counter() - t0)
     models = json.loads((cap_dir / "truth" / "models.json").read_text())
     cam = PinholeCamera.from_dict(models["camera"])
     planes = np.array(models["projector"]["planes"])
-    t0 = time.perf_counter()
-    ref.window_sums(*template_size(ref))
-    ref.dots_transposed()
-    precompute_ms = 1e3 * (time.perf_counter() - t0)
+    images = {p.stem: cap.image(p) for p in cap.scans}
+    # warm-up, untimed in the table: caches built on the reference, compiled kernels loaded
+    first = [sum(frame(img, ref, cam, planes)[0]) for img in images.values()][0]
     rows = []
-    for p in cap.scans:
-        img = cap.image(p)
-        t_med, t_ex, t_id, t_ref, t_tri, npts = [], [], [], [], [], 0
+    for name, img in images.items():
+        stage, blur, npts = [], [], 0
         for _ in range(repeat):
-            t0 = time.perf_counter()
-            cv2.medianBlur(img, 5)
-            t1 = time.perf_counter()
-            ex = extract_slits(
-                img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px
-            )
-            t2 = time.perf_counter()
-            ident = identify(img, ref, extraction=ex)
-            t3 = time.perf_counter()
-            u, _ = refine_centres(
-                img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px
-            )
-            t4 = time.perf_counter()
-            ok = ident.identified
-            pts, valid = triangulate(cam, planes, np.c_[u[ok], ident.v[ok]], ident.slit[ok])
-            t5 = time.perf_counter()
-            t_med.append(t1 - t0)
-            t_ex.append(t2 - t1)
-            t_id.append(t3 - t2)
-            t_ref.append(t4 - t3)
-            t_tri.append(t5 - t4)
-            npts = int(valid.sum())
-        total = statistics.median(np.add(np.add(np.add(t_ex, t_id), t_ref), t_tri))
-        rows.append(
-            {
-                "slits": num_slits,
-                "scene": p.stem,
-                "points": npts,
-                "median_blur_ms": 1e3 * statistics.median(t_med),
-                "extract_ms": 1e3 * statistics.median(t_ex),
-                "identify_ms": 1e3 * statistics.median(t_id),
-                "refine_ms": 1e3 * statistics.median(t_ref),
-                "triangulate_ms": 1e3 * statistics.median(t_tri),
-                "total_ms": 1e3 * total,
-                "points_per_s": npts / total,
-                "precompute_ms": precompute_ms,
-            }
+            blur.append(median_blur_s(img))
+            s, npts = frame(img, ref, cam, planes)
+            stage.append(s)
+        tracemalloc.start()
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        frame(img, ref, cam, planes)
+        peak = tracemalloc.get_traced_memory()[1] - base
+        tracemalloc.stop()
+        st = np.array(stage)
+        total = float(np.median(st.sum(axis=1)))
+        mb = statistics.median(blur)
+        row = {"slits": num_slits, "scene": name, "points": npts, "median_blur_ms": 1e3 * mb}
+        row.update({f"{k}_ms": 1e3 * float(np.median(st[:, i])) for i, k in enumerate(STAGES)})
+        row.update(
+            total_ms=1e3 * total,
+            ratio=total / mb,
+            points_per_s=npts / total,
+            peak_mb=peak / 2**20,
         )
-    return rows
+        rows.append(row)
+    return rows, {"slits": num_slits, "prepare_s": prep, "first_s": first}
 
 
-_ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+_ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def table(rows: list[dict], preps: list[dict]) -> str:
+    lines = [
+        "| slits | scene | points | medianBlur ms | extract ms | identify ms | refine ms "
+        "| triangulate ms | total ms | x medianBlur | points/s | peak MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['slits']} | {r['scene']} | {r['points']} | {r['median_blur_ms']:.2f} "
+            f"| {r['extract_ms']:.1f} | {r['identify_ms']:.1f} | {r['refine_ms']:.1f} "
+            f"| {r['triangulate_ms']:.1f} | {r['total_ms']:.1f} | {r['ratio']:.0f} "
+            f"| {r['points_per_s']:.0f} | {r['peak_mb']:.0f} |"
+        )
+    lines.append("")
+    lines.append("Per stage, in medianBlur passes of the same frame (median over the scans):")
+    lines.append("")
+    for n in sorted({r["slits"] for r in rows}):
+        rs = [r for r in rows if r["slits"] == n]
+        parts = ", ".join(
+            f"{k} {statistics.median(r[f'{k}_ms'] / r['median_blur_ms'] for r in rs):.1f}"
+            for k in STAGES
+        )
+        lines.append(f"- {n} slits: {parts}")
+    lines.append("")
+    for p in preps:
+        s = p["prepare_s"]
+        lines.append(
+            f"Reference preparation (`prepare_reference`, {p['slits']} slits): "
+            f"{min(s):.2f}-{max(s):.2f} s over {len(s)} runs; the first frame after it "
+            f"(caches built on the reference, compiled kernels loaded) {1e3 * p['first_s']:.0f} ms."
+        )
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    lines.append(f"\nProcess max RSS at the end: {rss:.0f} MB.")
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    lines.append(f"Load average at the end (1, 5, 15 min): {load} on {os.cpu_count()} cores.")
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -115,23 +182,33 @@ def main() -> None:
     ap.add_argument(
         "--repeat", type=int, default=5, help="runs per frame; the median is kept (default 5)"
     )
-    args = ap.parse_args()
-    cv2.setNumThreads(1)
-    with tempfile.TemporaryDirectory() as d:
-        rows = [r for n in args.slits for r in run(n, args.repeat, Path(d))]
-    print(
-        "| slits | scene | points | medianBlur ms | extract ms | identify ms | refine ms | triangulate ms | total ms | x medianBlur | points/s |"
+    ap.add_argument(
+        "--write", action="store_true", help="replace the speed section of benchmarks/RESULTS.md"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(
-            f"| {r['slits']} | {r['scene']} | {r['points']} | {r['median_blur_ms']:.1f} | {r['extract_ms']:.1f} | "
-            f"{r['identify_ms']:.1f} | {r['refine_ms']:.1f} | {r['triangulate_ms']:.1f} | {r['total_ms']:.1f} | "
-            f"{r['total_ms'] / r['median_blur_ms']:.0f} | {r['points_per_s']:.0f} |"
+    args = ap.parse_args()
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
+    cv2.setNumThreads(1)
+    rows, preps = [], []
+    with tempfile.TemporaryDirectory() as d:
+        for n in args.slits:
+            r, p = run(n, args.repeat, Path(d))
+            rows += r
+            preps.append(p)
+    text = table(rows, preps)
+    print(text)
+    if args.write:
+        note = (
+            "OpenCV, BLAS and Numba on one thread; medians over the runs of each frame; "
+            '"refine" is the centre refinement `scan_image` runs by default; "peak MB" is '
+            "tracemalloc's peak of the Python/NumPy allocations in one frame.\n\n"
         )
-    for n in args.slits:
-        ms = next(r["precompute_ms"] for r in rows if r["slits"] == n)
-        print(f"\nreference precompute (once per rig), {n} slits: {ms:.0f} ms")
+        write_section(
+            "bench_speed",
+            "Speed (one core, full size 1280x1024)",
+            note + text,
+            command_line("bench_speed.py"),
+        )
 
 
 if __name__ == "__main__":
