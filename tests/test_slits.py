@@ -506,3 +506,29 @@ def test_leaning_speckled_stripe_one_segment(slope):
         assert np.unique(ex.segment[linked]).size <= 2, (slope, seed)
         err = ex.u - uc[ex.v.astype(int)]
         assert np.sqrt(np.mean(err**2)) < 0.25, (slope, seed, np.sqrt(np.mean(err**2)))
+
+
+def test_dot_size_is_the_typical_dot_not_the_brightest():
+    """Many small dots and, in each column, one bright wide blob (a speckle clump or a stripe
+    crossing): the dot size is the typical dot's, not the brightest one's."""
+    from multislit.stripes import estimate_dot_size
+
+    rng = np.random.default_rng(3)
+    h, w = 400, 200
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    img = np.zeros((h, w), np.float32)
+
+    def blob(y, x, fwhm, amp):
+        s = fwhm / 2.3548
+        r = int(4 * s) + 1
+        y0, y1, x0, x1 = max(0, y - r), min(h, y + r + 1), max(0, x - r), min(w, x + r + 1)
+        g = np.exp(-((yy[y0:y1, x0:x1] - y) ** 2 + (xx[y0:y1, x0:x1] - x) ** 2) / (2 * s * s))
+        img[y0:y1, x0:x1] += amp * g
+
+    for _ in range(3000):  # small dots, FWHM 2 px
+        blob(int(rng.integers(5, h - 5)), int(rng.integers(0, w)), 2.0, 60.0)
+    for x in range(0, w, 3):  # one bright, wide blob per few columns, FWHM 5 px
+        blob(int(rng.integers(10, h - 10)), x, 5.0, 250.0)
+    img += rng.normal(0, 1.0, img.shape).astype(np.float32)
+    size = estimate_dot_size(np.clip(img, 0, None))
+    assert size is not None and 1.6 <= size <= 2.6, size

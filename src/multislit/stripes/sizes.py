@@ -57,7 +57,10 @@ def _d2_kernel(sigma: float) -> NDArray[np.float32]:
 
 
 def _ridge_fwhm(
-    profiles: NDArray[np.float32], pixel_noise: float, z_min: float = 6.0
+    profiles: NDArray[np.float32],
+    pixel_noise: float,
+    z_min: float = 6.0,
+    strongest: bool = False,
 ) -> float | None:
     """Typical FWHM (px) of the bright ridges along the rows of ``profiles`` (R, N), or None.
 
@@ -65,7 +68,9 @@ def _ridge_fwhm(
     the Gaussian-smoothed profile (t = sigma^2) peaks, for a Gaussian ridge of sigma s, exactly
     at sigma = s. Ridge points are local maxima along the row with a response > ``z_min`` times
     the robust noise of that scale's response; the scale is refined by a parabola in log sigma
-    and the median over all ridge points is returned as FWHM.
+    and the median over all ridge points is returned as FWHM. With ``strongest`` (stripes, not
+    dots), the median over each profile's strongest ridge replaces it where the two differ by
+    more than ``_WIDTH_DISAGREEMENT``.
     """
     n_scales = len(_SCALES)
     resp = np.empty((n_scales,) + profiles.shape, np.float32)
@@ -106,6 +111,8 @@ def _ridge_fwhm(
     if log_s.size < 3:
         return None
     typical = float(np.median(log_s))
+    if not strongest:
+        return float(np.exp(typical) * FWHM_PER_SIGMA)
     # the brightest ridge of each profile is a stripe: where the ridges at large are much
     # narrower or wider (edges, texture and JPEG blocks outnumbering a few laser lines in a
     # photo), the stripes' own width is taken
@@ -208,7 +215,7 @@ def estimate_stripe_width(image: ArrayLike, *, channel: str = "red") -> float:
     # pixel noise from vertical neighbours: the (near-vertical) stripes cancel, noise does not
     diff = rows - img[idx + 1].astype(np.float32)
     pixel_noise = max(1.4826 * float(np.median(np.abs(diff))) / math.sqrt(2.0), 1e-3)
-    w = _ridge_fwhm(rows, pixel_noise)
+    w = _ridge_fwhm(rows, pixel_noise, strongest=True)
     if w is None:
         raise SlitExtractionError("estimate_stripe_width: no stripes found in image")
     return w
