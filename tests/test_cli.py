@@ -1,8 +1,11 @@
 import json
 
+import pytest
+
 from multislit.app.cli import main
 
 
+@pytest.mark.slow
 def test_simulate_writes_a_capture(tmp_path, capsys):
     rc = main(
         ["simulate", str(tmp_path / "c"), "--scene", "spheres", "--scale", "0.25", "--seed", "2"]

@@ -226,7 +226,8 @@ def scene_samples(scenes_capture, scenes_reference):
         _Options(),  # tall templates
         _Options(template_half_width=1.5),  # wide templates
         _Options(references="all"),
-        _Options(search_px=2),  # some shifted patches leave the image
+        # some shifted patches leave the image
+        pytest.param(_Options(search_px=2), marks=pytest.mark.slow),
     ],
 )
 def test_fast_scores_equal_sampled_patches(scenes_reference, scene_samples, params):
@@ -245,6 +246,7 @@ def test_fast_scores_equal_sampled_patches(scenes_reference, scene_samples, para
         assert np.nanmax(np.abs(fast - slow)) < 1e-4
 
 
+@pytest.mark.slow
 def test_fast_scoring_gives_the_same_slits(monkeypatch, scenes_reference, scene_samples):
     img, ex, _ = scene_samples
     fast = identify(img, scenes_reference, extraction=ex)
