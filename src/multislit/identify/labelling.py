@@ -114,6 +114,20 @@ class Identification:
         return int(sum(self.dropped.values()))
 
 
+def _mean_difference(
+    X: F64, starts: NDArray[np.intp], n: NDArray[np.intp], a: I64, b: I64
+) -> tuple[F64, F64]:
+    """Per group of consecutive rows of ``X`` (M, N) (group g: ``n[g]`` rows from
+    ``starts[g]``): the mean of ``X[:, a[g]] - X[:, b[g]]`` over its rows, and the standard
+    error of that mean (from the rows' spread; 0 for a group of one row)."""
+    grp = np.repeat(np.arange(len(starts)), n)
+    rows = np.arange(len(X))
+    d = X[rows, a[grp]] - X[rows, b[grp]]
+    dm = np.add.reduceat(d, starts) / n
+    ss = np.add.reduceat((d - dm[grp]) ** 2, starts)
+    return dm, np.sqrt(ss / np.maximum(n - 1, 1)) / np.sqrt(n)
+
+
 def _segment_votes(
     seg_of_sample: I64, scores: F64, means: dict | None = None
 ) -> dict[int, tuple[int, float, float, int]]:
@@ -149,17 +163,13 @@ def _segment_votes(
         rest[g, k1] = -np.inf
         k2 = np.argmax(rest, axis=1)
         m2 = rest[g, k2]
-        grp = np.repeat(g, n)
-        d = Sz[np.arange(len(rows)), k1[grp]] - Sz[np.arange(len(rows)), k2[grp]]
-    else:
+        _, se = _mean_difference(Sz, starts, n, k1, k2)
+    else:  # one slit: its margin over a score of -1
         m2 = np.full(len(starts), -1.0)
-        grp = np.repeat(g, n)
-        d = Sz[:, 0] + 1.0
+        d1 = np.c_[Sz[:, 0] + 1.0, np.zeros(len(Sz))]
+        _, se = _mean_difference(d1, starts, n, np.zeros_like(g), np.ones_like(g))
     # margin, discounted by its uncertainty (few or disagreeing samples)
-    dm = np.add.reduceat(d, starts) / n
-    ss = np.add.reduceat((d - dm[grp]) ** 2, starts)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        se = np.where(n > 1, np.sqrt(ss / np.maximum(n - 1, 1)) / np.sqrt(n), 0.3)
+    se = np.where(n > 1, se, 0.3)
     margin = np.maximum(0.0, m1 - m2 - se)
     conf = np.clip(margin / 0.3, 0.0, 1.0)
     for j, sid in enumerate(s_sorted[starts]):
@@ -439,14 +449,8 @@ def _contradicted_by_dots(
     starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
     n = np.diff(np.r_[starts, len(j)])
     X = np.where(np.isfinite(scores[j]), scores[j], _NO_CANDIDATE)
-    grp = np.repeat(np.arange(len(starts)), n)
     mean = np.add.reduceat(X, starts, axis=0) / n[:, None]
-    best = np.argmax(mean, axis=1)
-    k = lut[s_sorted[starts]]
-    d = X[np.arange(len(X)), best[grp]] - X[np.arange(len(X)), k[grp]]
-    dm = np.add.reduceat(d, starts) / n
-    ss2 = np.add.reduceat((d - dm[grp]) ** 2, starts)
-    se = np.sqrt(ss2 / np.maximum(n - 1, 1)) / np.sqrt(n)
+    dm, se = _mean_difference(X, starts, n, np.argmax(mean, axis=1), lut[s_sorted[starts]])
     se = np.where(n > 1, se, np.inf)  # one sample says too little
     bad = dm > _VETO_SE * se + _VETO_TOLERANCE
     bad_seg = np.zeros(len(lut), bool)
