@@ -564,6 +564,10 @@ def test_a_label_its_own_dots_contradict_is_left_out():
     assert bad[:20].all()  # contradicted: left out
     assert not bad[20:40].any()  # its dots agree
     assert not bad[40:].any()  # undecided dots do not veto
+    # every label a segment carries is checked: segment 1's second half labelled 7
+    slit[30:40] = 7
+    bad = _contradicted_by_dots(seg, si, scores, slit)
+    assert bad[30:40].all() and not bad[20:30].any()
     # unlabelled points and points without samples are never flagged
-    slit[:20] = -1
+    slit[:40] = -1
     assert not _contradicted_by_dots(seg, si, scores, slit).any()

@@ -428,34 +428,34 @@ def _contradicted_by_dots(
 ) -> NDArray[np.bool_]:
     """(K,) bool: the labelled points whose segment's own dots contradict their slit.
 
-    However a segment got its label (its dots, or its place in the rows), its own samples have
+    However a segment got a label (its dots, or its place in the rows), its own samples have
     the last word: where their mean NCC for the label lies below their best slit's by more than
     ``_VETO_SE`` standard errors of the per-sample difference (plus ``_VETO_TOLERANCE``), the
-    label is left out. A segment without samples, or whose dots are undecided, keeps its label.
+    label is left out. Every label a segment carries is checked. A segment without samples, or
+    with one, or whose dots are undecided, keeps its labels.
     """
     out = np.zeros(len(seg), bool)
-    lab = slit >= 0
-    if not lab.any() or len(si) == 0:
+    lab = np.flatnonzero((slit >= 0) & (seg >= 0))
+    if lab.size == 0 or len(si) == 0:
         return out
-    # the segment's label at its samples: the label of its labelled points (one per segment)
-    lut = np.full(int(seg.max()) + 1, -1, np.int64)
-    lut[seg[lab]] = slit[lab]
+    # the (segment, label) pairs, and for each the samples of its segment
+    pairs, point_pair = np.unique(np.c_[seg[lab], slit[lab]], axis=0, return_inverse=True)
     ss = seg[si]
-    keep = np.flatnonzero((ss >= 0) & (lut[np.maximum(ss, 0)] >= 0))
-    if keep.size == 0:
+    order = np.argsort(ss, kind="stable")
+    lo = np.searchsorted(ss[order], pairs[:, 0], side="left")
+    n = np.searchsorted(ss[order], pairs[:, 0], side="right") - lo
+    has = n > 0
+    if not has.any():
         return out
-    j = keep[np.argsort(ss[keep], kind="stable")]  # samples grouped by segment
-    s_sorted = ss[j]
-    starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
-    n = np.diff(np.r_[starts, len(j)])
+    starts = np.r_[0, np.cumsum(n[has])[:-1]]
+    j = order[np.concatenate([np.arange(a, a + m) for a, m in zip(lo[has], n[has], strict=True)])]
     X = np.where(np.isfinite(scores[j]), scores[j], _NO_CANDIDATE)
-    mean = np.add.reduceat(X, starts, axis=0) / n[:, None]
-    dm, se = _mean_difference(X, starts, n, np.argmax(mean, axis=1), lut[s_sorted[starts]])
-    se = np.where(n > 1, se, np.inf)  # one sample says too little
-    bad = dm > _VETO_SE * se + _VETO_TOLERANCE
-    bad_seg = np.zeros(len(lut), bool)
-    bad_seg[s_sorted[starts][bad]] = True
-    out[lab] = bad_seg[seg[lab]] & (slit[lab] == lut[seg[lab]])
+    mean = np.add.reduceat(X, starts, axis=0) / n[has][:, None]
+    dm, se = _mean_difference(X, starts, n[has], np.argmax(mean, axis=1), pairs[has, 1])
+    se = np.where(n[has] > 1, se, np.inf)  # one sample says too little
+    bad_pair = np.zeros(len(pairs), bool)
+    bad_pair[np.flatnonzero(has)] = dm > _VETO_SE * se + _VETO_TOLERANCE
+    out[lab] = bad_pair[point_pair.ravel()]
     return out
 
 
