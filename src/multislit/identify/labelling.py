@@ -60,6 +60,8 @@ _NEIGHBOUR_SHARE = 0.5
 _VETO_SE = 2.0
 #: ... plus this much NCC.
 _VETO_TOLERANCE = 0.02
+#: Standard error taken for a segment with one sample, whose spread cannot be measured (NCC).
+_ONE_SAMPLE_SE = 0.3
 #: NCC counted for a hypothesis without a candidate (the slit cannot light the sample inside
 #: the measuring volume, or its template would leave the image).
 _NO_CANDIDATE = -0.2
@@ -169,7 +171,7 @@ def _segment_votes(
         d1 = np.c_[Sz[:, 0] + 1.0, np.zeros(len(Sz))]
         _, se = _mean_difference(d1, starts, n, np.zeros_like(g), np.ones_like(g))
     # margin, discounted by its uncertainty (few or disagreeing samples)
-    se = np.where(n > 1, se, 0.3)
+    se = np.where(n > 1, se, _ONE_SAMPLE_SE)
     margin = np.maximum(0.0, m1 - m2 - se)
     conf = np.clip(margin / 0.3, 0.0, 1.0)
     for j, sid in enumerate(s_sorted[starts]):
@@ -431,8 +433,9 @@ def _contradicted_by_dots(
     However a segment got a label (its dots, or its place in the rows), its own samples have
     the last word: where their mean NCC for the label lies below their best slit's by more than
     ``_VETO_SE`` standard errors of the per-sample difference (plus ``_VETO_TOLERANCE``), the
-    label is left out. Every label a segment carries is checked. A segment without samples, or
-    with one, or whose dots are undecided, keeps its labels.
+    label is left out. Every label a segment carries is checked (a segment with one sample is
+    taken to have a standard error of ``_ONE_SAMPLE_SE``). A segment without samples, or whose
+    dots are undecided, keeps its labels.
     """
     out = np.zeros(len(seg), bool)
     lab = np.flatnonzero((slit >= 0) & (seg >= 0))
@@ -452,7 +455,7 @@ def _contradicted_by_dots(
     X = np.where(np.isfinite(scores[j]), scores[j], _NO_CANDIDATE)
     mean = np.add.reduceat(X, starts, axis=0) / n[has][:, None]
     dm, se = _mean_difference(X, starts, n[has], np.argmax(mean, axis=1), pairs[has, 1])
-    se = np.where(n[has] > 1, se, np.inf)  # one sample says too little
+    se = np.where(n[has] > 1, se, _ONE_SAMPLE_SE)  # one sample: no spread to measure
     bad_pair = np.zeros(len(pairs), bool)
     bad_pair[np.flatnonzero(has)] = dm > _VETO_SE * se + _VETO_TOLERANCE
     out[lab] = bad_pair[point_pair.ravel()]
