@@ -31,7 +31,7 @@ chromium:
 test: $(BIN)/activate chromium
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile  # two processes, a test file each
 
 bench: $(BIN)/activate
 	$(BIN)/python benchmarks/bench_speed.py
