@@ -41,6 +41,44 @@ _MAX_IMAGE_SIDE = 100_000
 
 
 # --------------------------------------------------------------------------- images
+def laser_plane(frame: NDArray, channel: str, *, name: str = "frame") -> NDArray:
+    """The laser's plane of an image as OpenCV gives it: grayscale, BGR or BGRA, 8 or 16 bit.
+
+    Parameters
+    ----------
+    frame : (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA array, uint8 or uint16
+    channel : the plane of a colour image: ``"red"``, ``"green"``, ``"blue"`` or ``"luma"``
+        (Rec. 601); a grayscale image is returned as it is
+    name : what the image is, for messages (e.g. ``"image scans/a.png"``); default "frame"
+
+    Returns
+    -------
+    (H, W) uint8 or uint16, C-contiguous
+
+    Raises
+    ------
+    CaptureError
+        (a ``ValueError``) for another shape or pixel type, or an unknown ``channel``.
+    """
+    from multislit.stripes.validation import as_image  # lazy: io loads first
+
+    img = np.asarray(frame)
+    if img.dtype not in (np.uint8, np.uint16):
+        raise CaptureError(f"{name} has pixel type {img.dtype}; expected 8- or 16-bit")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 3:
+        if img.shape[2] not in (3, 4):
+            raise CaptureError(f"{name} has {img.shape[2]} channels; expected 1, 3 or 4")
+        try:  # OpenCV's BGR(A) -> RGB, then the package's one image check picks the plane
+            img = np.ascontiguousarray(as_image(img[:, :, 2::-1], name=name, channel=channel))
+        except ValueError as exc:
+            raise CaptureError(str(exc)) from None
+    if img.ndim != 2:
+        raise CaptureError(f"{name} has shape {img.shape}; expected (H, W) or (H, W, 3) pixels")
+    return img
+
+
 def read_image(
     path: str | Path, expected_size: tuple[int, int] | None = None, *, channel: str = "red"
 ) -> NDArray:
@@ -57,7 +95,7 @@ def read_image(
     -------
     image : (H, W) uint8 or uint16
     """
-    from multislit.stripes.validation import CHANNELS, as_image  # lazy: io loads first
+    from multislit.stripes.validation import CHANNELS  # lazy: io loads first
 
     p = Path(path)
     if not p.is_file():
@@ -72,12 +110,7 @@ def read_image(
         cv2.utils.logging.setLogLevel(level)
     if img is None:
         raise CaptureError(f"cannot read image {p}: not a valid PNG")
-    if img.dtype not in (np.uint8, np.uint16):
-        raise CaptureError(f"image {p} has pixel type {img.dtype}; expected 8- or 16-bit grayscale")
-    if img.ndim == 3:
-        if img.shape[2] not in (3, 4):
-            raise CaptureError(f"image {p} has {img.shape[2]} channels; expected 1, 3 or 4")
-        img = as_image(img[:, :, 2::-1], name=str(p), channel=channel)  # OpenCV's BGR -> RGB
+    img = laser_plane(img, channel, name=f"image {p}")
     if expected_size is not None:
         w, h = expected_size
         if img.shape != (h, w):

@@ -37,7 +37,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.errors import CaptureError
-from multislit.stripes.validation import CHANNELS, as_image
+from multislit.io.capture import laser_plane
+from multislit.stripes.validation import CHANNELS
 
 __all__ = ["Frame", "FrameSource", "open_source", "IMAGE_SUFFIXES", "CHANNELS"]
 
@@ -74,24 +75,6 @@ class Frame:
     source: str
     image: NDArray | None
     error: str = ""
-
-
-def _laser_channel(image: NDArray, channel: str) -> NDArray:
-    """A (H, W) frame from a grayscale or OpenCV colour (BGR/BGRA) image: the laser's channel.
-
-    Raises ValueError naming the problem for other shapes and pixel types.
-    """
-    img = np.asarray(image)
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[:, :, 0]
-    if img.ndim == 3 and img.shape[2] in (3, 4):
-        # OpenCV's BGR(A) -> RGB, then the package's one image check picks the plane
-        img = np.ascontiguousarray(as_image(img[:, :, 2::-1], name="frame", channel=channel))
-    if img.ndim != 2:
-        raise ValueError(f"frame has shape {img.shape}; expected (H, W) or (H, W, 3) pixels")
-    if img.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"frame has pixel type {img.dtype}; expected 8- or 16-bit")
-    return img
 
 
 @contextmanager
@@ -148,7 +131,7 @@ class FrameSource:
         if image is None:
             return Frame(index, source, None, "cannot read the frame")
         try:
-            return Frame(index, source, _laser_channel(image, self.channel))
+            return Frame(index, source, laser_plane(image, self.channel))
         except ValueError as exc:
             return Frame(index, source, None, str(exc))
 
