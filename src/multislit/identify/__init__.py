@@ -18,6 +18,7 @@ from multislit.identify.order import OrderParams, apply_run_offsets, row_runs, r
 from multislit.identify.patches import (
     WINDOW_SUMS,
     bilinear_patch_moments,
+    compile_kernels,
     normalise_patches,
     sample_patches,
     sample_sheared_patches,
@@ -55,6 +56,7 @@ __all__ = [
     "sample_patches",
     "sample_sheared_patches",
     "normalise_patches",
+    "compile_kernels",
     "WINDOW_SUMS",
     "window_sums",
     "bilinear_patch_moments",

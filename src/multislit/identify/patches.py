@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
@@ -60,6 +61,115 @@ def sample_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
     if rest.size:
         out[rest] = _remap_patches(image, centres[rest], half_w, half_h)
     return out
+
+
+def sample_patch_columns(
+    image: F32, centres: F64, half_w: int, half_h: int, *, image_t: F32 | None = None
+) -> tuple[F32, F64, F64]:
+    """:func:`sample_patches` with the patch axes swapped, and each patch's sum and sum of
+    squares: the same values, made in one compiled pass where the patch lies inside the image.
+
+    Many patches along a near-vertical curve (the candidates of a 1-D search along a slit) are
+    made several times faster this way than by :func:`sample_patches`, and their moments come
+    without another pass.
+
+    Parameters
+    ----------
+    image : (H, W) float32
+    centres : (M, 2) float64, px (u, v)
+    half_w, half_h : patch half sizes, px
+    image_t : (W, H) float32 C-contiguous, optional, ``image`` transposed (made here if not
+        given: pass it when sampling one image many times)
+
+    Returns
+    -------
+    columns : (M, 2*half_w+1, 2*half_h+1) float32, ``sample_patches(...)`` transposed per
+        patch (equal values; zero outside the image)
+    s1, s2 : (M,) float64, the sum of each patch's values and of their squares
+    """
+    image = np.asarray(image, dtype=np.float32)
+    h, w = image.shape
+    if image_t is None:
+        image_t = image.T
+    elif np.shape(image_t) != (w, h) or np.asarray(image_t).dtype != np.float32:
+        raise ValueError(f"image_t must be the ({w}, {h}) float32 transpose of image")
+    image_t = np.ascontiguousarray(image_t)
+    m = len(centres)
+    ph, pw = 2 * half_h + 1, 2 * half_w + 1
+    out = np.empty((m, pw, ph), np.float32)
+    s1 = np.empty(m)
+    s2 = np.empty(m)
+    if m == 0:
+        return out, s1, s2
+    centres = np.asarray(centres, dtype=np.float64)
+    x = centres[:, 0] - half_w
+    y = centres[:, 1] - half_h
+    with np.errstate(invalid="ignore"):
+        inside = (x >= 0) & (np.floor(x) + pw < w) & (y >= 0) & (np.floor(y) + ph < h)
+    idx = np.flatnonzero(inside)
+    if idx.size:
+        # the same float32 blends as sample_patches: along u first, then along v
+        x0 = np.floor(x[idx])
+        y0 = np.floor(y[idx])
+        fx = (x[idx] - x0).astype(np.float32)
+        fy = (y[idx] - y0).astype(np.float32)
+        n = idx.size
+        dst = (
+            (out, s1, s2)
+            if n == m
+            else (np.empty((n, pw, ph), np.float32), np.empty(n), np.empty(n))
+        )
+        _patch_columns_kernel(image_t, x0.astype(np.intp), y0.astype(np.intp), fx, fy, *dst)
+        if n < m:
+            out[idx], s1[idx], s2[idx] = dst
+    rest = np.flatnonzero(~inside)
+    if rest.size:
+        p = sample_patches(image, centres[rest], half_w, half_h).transpose(0, 2, 1)
+        out[rest] = p
+        q = p.reshape(len(rest), -1).astype(np.float64)
+        s1[rest] = q.sum(axis=1)
+        s2[rest] = np.einsum("ij,ij->i", q, q)
+    return out, s1, s2
+
+
+@njit(cache=True, fastmath={"reassoc", "nsz"})
+def _add_moments(col, acc):
+    """acc[0] += sum(col), acc[1] += sum(col**2), in float64 (any order: vectorised)."""
+    a = 0.0
+    b = 0.0
+    for c in col:
+        f = np.float64(c)
+        a += f
+        b += f * f
+    acc[0] += a
+    acc[1] += b
+
+
+@njit(cache=True)
+def _patch_columns_kernel(image_t, x0, y0, fx, fy, out, s1, s2):
+    """Bilinear patches of the transposed image ``image_t`` (W, H) at whole-pixel corners
+    (``x0``, ``y0``) and float32 fractions (``fx``, ``fy``), written column by column to ``out``
+    (M, pw, ph) with the blends of :func:`sample_patches` (u first, then v); their sums and
+    sums of squares to ``s1``, ``s2``."""
+    pw, ph = out.shape[1], out.shape[2]
+    acc = np.zeros(2)
+    for m in range(x0.size):
+        a0, b0, wx, wy = x0[m], y0[m], fx[m], fy[m]
+        acc[0] = 0.0
+        acc[1] = 0.0
+        for i in range(pw):
+            ca = image_t[a0 + i, b0 : b0 + ph + 1]
+            cb = image_t[a0 + i + 1, b0 : b0 + ph + 1]
+            o = out[m, i]
+            for r in range(ph):
+                p = ca[r]
+                q = ca[r + 1]
+                top = p + wx * (cb[r] - p)
+                bottom = q + wx * (cb[r + 1] - q)
+                o[r] = top + wy * (bottom - top)
+            _add_moments(o, acc)
+        s1[m] = acc[0]
+        s2[m] = acc[1]
 
 
 def _remap_patches(
@@ -223,3 +333,13 @@ def bilinear_patch_moments(
         + w[..., 1] * w[..., 2] * q[..., 0, 5]
     )
     return s1.astype(np.float64), s2.astype(np.float64)
+
+
+def compile_kernels() -> None:
+    """Compile the patch sampler's Numba kernel (:func:`sample_patch_columns`) now.
+
+    Numba compiles it on first use (a few seconds) and caches the machine code on disk beside
+    the package, so only the first reference preparation after an install pays it.
+    """
+    img = np.zeros((16, 16), np.float32)
+    sample_patch_columns(img, np.array([[8.0, 8.0]]), 2, 3)

@@ -23,7 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.errors import ReferenceImageError
-from multislit.identify.patches import normalise_patches, sample_patches, window_sums
+from multislit.identify.patches import (
+    normalise_patches,
+    sample_patch_columns,
+    sample_patches,
+    window_sums,
+)
 from multislit.io import Capture, write_bytes_atomic
 from multislit.stripes import SlitExtraction, extract_slits
 from multislit.stripes.validation import SlitExtractionError, as_image
@@ -33,6 +38,11 @@ F32 = NDArray[np.float32]
 #: Degree of the polynomial u = p(v) fitted per slit: a line plus the bend of a few px that
 #: lens distortion gives.
 CURVE_DEGREE = 3
+#: Templates scored per matrix product in the epipole's dot search.
+_SCORE_BLOCK = 8
+#: A candidate patch whose values' norm about their mean is at most this is flat (score 0), as
+#: in :func:`normalise_patches`.
+_FLAT = 1e-6
 
 
 # --------------------------------------------------------------------------- curves
@@ -69,36 +79,51 @@ def _fit_curves(
             f"fills the field of view, the exposure, and rig.json's num_slits)"
         )
     rank = np.full(len(u), -1)
-    for s0 in start[complete]:
-        rank[s0 : s0 + num_slits] = np.arange(num_slits)
-    seg_rank = {}
-    for s in np.unique(sg):
-        r = rank[(sg == s) & (rank >= 0)]
-        if r.size:
-            vals, cnt = np.unique(r, return_counts=True)
-            if cnt.max() >= 0.9 * r.size:  # a segment that changes rank is two slits joined
-                seg_rank[s] = int(vals[cnt.argmax()])
-    lab = np.array([seg_rank.get(s, -1) for s in sg])
+    rank[(start[complete][:, None] + np.arange(num_slits)).ravel()] = np.tile(
+        np.arange(num_slits), int(complete.sum())
+    )
+    lab = _segment_ranks(sg, rank, num_slits)
     coeffs = np.zeros((num_slits, CURVE_DEGREE + 1))
     vrange = np.zeros((num_slits, 2))
+    by_slit = np.argsort(lab, kind="stable")  # each slit's points in their order
+    ends = np.searchsorted(lab[by_slit], np.arange(num_slits + 1))
     for k in range(num_slits):
-        m = lab == k
-        if m.sum() < max(20, 0.2 * image_height):
+        m = by_slit[ends[k] : ends[k + 1]]
+        if m.size < max(20, 0.2 * image_height):
             raise ReferenceImageError(
-                f"reference image {name}: slit {k} is seen over only {int(m.sum())} rows; every "
+                f"reference image {name}: slit {k} is seen over only {m.size} rows; every "
                 f"slit must cross the board (is part of the board in shadow or outside the fan?)"
             )
-        c = np.polyfit(v[m], u[m], CURVE_DEGREE)
-        r = u[m] - np.polyval(c, v[m])
+        vk, uk = v[m], u[m]
+        c = np.polyfit(vk, uk, CURVE_DEGREE)
+        r = uk - np.polyval(c, vk)
         ok = np.abs(r) < max(1.0, 4 * 1.4826 * np.median(np.abs(r)))
-        coeffs[k] = np.polyfit(v[m][ok], u[m][ok], CURVE_DEGREE)
-        vrange[k] = v[m][ok].min(), v[m][ok].max()
+        coeffs[k] = np.polyfit(vk[ok], uk[ok], CURVE_DEGREE)
+        vrange[k] = vk[ok].min(), vk[ok].max()
     mid = np.array([np.polyval(c, image_height / 2.0) for c in coeffs])
     if np.any(np.diff(mid) <= 0):
         raise ReferenceImageError(
             f"reference image {name}: slit curves cross each other; is this a flat board?"
         )
     return coeffs, vrange
+
+
+def _segment_ranks(sg: NDArray[np.intp], rank: NDArray[np.intp], num_slits: int) -> NDArray:
+    """The slit number of each point's segment: the rank (0..N-1, -1 unknown) that most of the
+    segment's ranked points got (the smallest such rank on a tie), if at least 90% of them got
+    it (a segment that changes rank is two slits joined), else -1."""
+    seg_ids, inv = np.unique(sg, return_inverse=True)
+    ranked = rank >= 0
+    pair, count = np.unique(inv[ranked] * num_slits + rank[ranked], return_counts=True)
+    p_seg, p_rank = pair // num_slits, pair % num_slits
+    total = np.bincount(p_seg, weights=count, minlength=len(seg_ids))
+    # per segment the pair with the most points, the smallest rank first among equals
+    order = np.lexsort((p_rank, -count, p_seg))
+    first = order[np.r_[True, p_seg[order][1:] != p_seg[order][:-1]]]
+    keep = count[first] >= 0.9 * total[p_seg[first]]
+    seg_rank = np.full(len(seg_ids), -1)
+    seg_rank[p_seg[first][keep]] = p_rank[first][keep]
+    return seg_rank[inv]
 
 
 def curve_u(coeffs: F64, v: F64) -> F64:
@@ -275,6 +300,71 @@ class ReferenceSet:
         )
 
 
+def _dot_tracks(curves: F64, vrange: F64, dots: F32, spacing_px: float) -> F64:
+    """The dots' tracks between reference images that :func:`estimate_epipole` meets.
+
+    For each pair of images (a, b), a < b, and each slit, templates beside the slit in image a,
+    every ``max(hh, 8)`` rows, are searched for along the slit's curve in image b, at every
+    whole-row offset within 2.5 slit spacings (normalised cross-correlation of bilinear
+    patches); a clear best match (score > 0.5, 0.15 above the third best, not at the end of the
+    search) gives a track, its end refined by a parabola through the neighbouring scores.
+
+    Parameters
+    ----------
+    curves : (R, N, D+1) float64, u = p(v) per image and slit
+    vrange : (R, N, 2) float64, px, rows where each curve was seen
+    dots : (R, H, W) float32, the dot images
+    spacing_px : float, px, slit spacing (sizes the templates and the search)
+
+    Returns
+    -------
+    tracks : (T, 4) float64, px, (u, v) in image a and (u, v) in image b per track, in the
+        order of the pairs, the slits and the rows
+    """
+    R, N = curves.shape[:2]
+    hw = max(3, int(round(0.35 * spacing_px)))
+    hh = max(6, int(round(0.6 * spacing_px)))
+    search = int(round(2.5 * spacing_px))
+    step = max(hh, 8)  # px between templates: whole, so the searches share candidate rows
+    offs = np.arange(-search, search + 1, 1.0)
+    dots_t = [cv2.transpose(np.ascontiguousarray(d, dtype=np.float32)) for d in dots]
+    tracks = []
+    for a in range(R):
+        for b in range(a + 1, R):
+            for k in range(N):
+                lo = max(vrange[a, k, 0], vrange[b, k, 0]) + hh + search
+                hi = min(vrange[a, k, 1], vrange[b, k, 1]) - hh - search
+                if hi <= lo:
+                    continue
+                vs = np.arange(lo, hi, float(step))
+                ua = curve_u(curves[a, k], vs)
+                tmpl = normalise_patches(sample_patches(dots[a], np.c_[ua, vs], hw, hh))
+                # template i searches rows vs[i] + offs: candidate row i*step + j of the
+                # candidates at vs[0] - search + 0, 1, 2, ... (each made once)
+                n_rows = (len(vs) - 1) * step + len(offs)
+                first = np.minimum(np.arange(n_rows) // step, len(vs) - 1)
+                vb = vs[first] + offs[np.minimum(np.arange(n_rows) - first * step, len(offs) - 1)]
+                ub = curve_u(curves[b, k], vb)
+                cols, m1, m2 = sample_patch_columns(
+                    dots[b], np.c_[ub, vb], hw, hh, image_t=dots_t[b]
+                )
+                score = _search_scores(tmpl, hw, hh, cols, m1, m2, step, len(offs))
+                j = np.argmax(score, axis=1)
+                best = score[np.arange(len(vs)), j]
+                third = np.partition(score, len(offs) - 3, axis=1)[:, -3]
+                ok = (best > 0.5) & (best - third > 0.15) & (j > 0) & (j < len(offs) - 1)
+                i = np.flatnonzero(ok)
+                ji = j[i]
+                # sub-step peak by a parabola through the neighbours
+                s0, s1, s2 = score[i, ji - 1], score[i, ji], score[i, ji + 1]
+                den = s0 - 2 * s1 + s2
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    d = np.where(den < 0, 0.5 * (s0 - s2) / den, np.float32(0.0))
+                v2 = vs[i] + offs[ji] + d
+                tracks.append(np.c_[ua[i], vs[i], curve_u(curves[b, k], v2), v2])
+    return np.concatenate(tracks) if tracks else np.zeros((0, 4))
+
+
 def estimate_epipole(
     curves: F64, vrange: F64, dots: F32, spacing_px: float, image_height: int
 ) -> tuple[F64, float]:
@@ -291,43 +381,12 @@ def estimate_epipole(
     epipole : (3,) homogeneous, unit norm
     rms : float, px, RMS distance of the track lines' far ends to the fitted epipole line
     """
-    R, N = curves.shape[:2]
-    hw = max(3, int(round(0.35 * spacing_px)))
-    hh = max(6, int(round(0.6 * spacing_px)))
-    search = int(round(2.5 * spacing_px))
-    tracks = []
-    for a in range(R):
-        for b in range(a + 1, R):
-            for k in range(N):
-                lo = max(vrange[a, k, 0], vrange[b, k, 0]) + hh + search
-                hi = min(vrange[a, k, 1], vrange[b, k, 1]) - hh - search
-                if hi <= lo:
-                    continue
-                vs = np.arange(lo, hi, max(hh, 8.0))
-                ua = curve_u(curves[a, k], vs)
-                tmpl = normalise_patches(sample_patches(dots[a], np.c_[ua, vs], hw, hh))
-                offs = np.arange(-search, search + 1, 1.0)
-                vb = (vs[:, None] + offs[None, :]).ravel()
-                ub = curve_u(curves[b, k], vb)
-                cand = normalise_patches(sample_patches(dots[b], np.c_[ub, vb], hw, hh))
-                score = np.einsum("mk,mjk->mj", tmpl, cand.reshape(len(vs), len(offs), -1))
-                j = np.argmax(score, axis=1)
-                best = score[np.arange(len(vs)), j]
-                srt = np.sort(score, axis=1)
-                ok = (best > 0.5) & (best - srt[:, -3] > 0.15) & (j > 0) & (j < len(offs) - 1)
-                for i in np.flatnonzero(ok):
-                    # sub-step peak by a parabola through the neighbours
-                    s0, s1, s2 = score[i, j[i] - 1 : j[i] + 2]
-                    den = s0 - 2 * s1 + s2
-                    d = 0.5 * (s0 - s2) / den if den < 0 else 0.0
-                    v2 = vs[i] + offs[j[i]] + d
-                    tracks.append((ua[i], vs[i], curve_u(curves[b, k], v2), v2))
-    if len(tracks) < 4:
+    T = _dot_tracks(curves, vrange, dots, spacing_px)
+    if len(T) < 4:
         raise ReferenceImageError(
-            f"could not match the dots between reference images ({len(tracks)} matches): the "
+            f"could not match the dots between reference images ({len(T)} matches): the "
             "reference boards must show the same dot pattern at different distances"
         )
-    T = np.array(tracks)
     p1 = np.c_[T[:, :2], np.ones(len(T))]
     p2 = np.c_[T[:, 2:], np.ones(len(T))]
     lines = np.cross(p1, p2)
@@ -354,6 +413,53 @@ def estimate_epipole(
         keep = new
     rms = float(np.sqrt(np.mean(res[keep] ** 2)))
     return e / np.linalg.norm(e), rms
+
+
+def _search_scores(
+    tmpl: F32, half_w: int, half_h: int, cols: F32, s1: F64, s2: F64, step: int, n_offs: int
+) -> F32:
+    """Normalised cross-correlations of templates with the candidates of a 1-D search.
+
+    Template i is compared with candidates ``i*step .. i*step + n_offs - 1``; the result is
+    ``normalise_patches`` of the candidates dotted with the templates (to float32 rounding),
+    taken from the raw candidates, their sums ``s1`` and sums of squares ``s2`` (a zero-mean
+    template's dot product with a patch does not depend on the patch's mean).
+
+    Parameters
+    ----------
+    tmpl : (M, K) float32, :func:`normalise_patches` of (2*half_h+1, 2*half_w+1) patches
+    cols : (C, 2*half_w+1, 2*half_h+1) float32, the candidates transposed
+        (:func:`sample_patch_columns`), C = (M-1)*step + n_offs
+    s1, s2 : (C,) float64, their sums and sums of squares
+
+    Returns
+    -------
+    score : (M, n_offs) float32, zero for flat candidates
+    """
+    m = len(tmpl)
+    ph, pw = 2 * half_h + 1, 2 * half_w + 1
+    t = np.ascontiguousarray(tmpl.reshape(m, ph, pw).transpose(0, 2, 1)).reshape(m, -1)
+    c = cols.reshape(len(cols), -1)
+    dot = np.empty((m, n_offs), np.float32)
+    for g0 in range(0, m, _SCORE_BLOCK):
+        g1 = min(g0 + _SCORE_BLOCK, m)
+        r0, r1 = g0 * step, (g1 - 1) * step + n_offs
+        full = t[g0:g1] @ c[r0:r1].T  # (g, r1 - r0): template g0 + q's band starts at q*step
+        dot[g0:g1] = np.lib.stride_tricks.as_strided(
+            full,
+            shape=(g1 - g0, n_offs),
+            strides=(full.strides[0] + step * full.strides[1], full.strides[1]),
+            writeable=False,
+        )
+    k = c.shape[1]
+    mean = s1 / k
+    norm = np.sqrt(np.maximum(s2 - s1 * mean, 0.0))
+    row = np.arange(m)[:, None] * step + np.arange(n_offs)[None, :]
+    t_sum = tmpl.sum(axis=1, dtype=np.float64)[:, None]
+    nr = norm[row]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        score = (dot - mean[row] * t_sum) / nr
+    return np.where(nr > _FLAT, score, 0.0).astype(np.float32)
 
 
 def _dot_density(dots: F32, curves: F64, vrange: F64) -> float:
