@@ -38,6 +38,8 @@ F32 = NDArray[np.float32]
 #: Degree of the polynomial u = p(v) fitted per slit: a line plus the bend of a few px that
 #: lens distortion gives.
 CURVE_DEGREE = 3
+#: Dots a template holds on average when dots are matched between reference images.
+_EPIPOLE_DOTS = 12.0
 #: Templates scored per matrix product in the epipole's dot search.
 _SCORE_BLOCK = 8
 #: A candidate patch whose values' norm about their mean is at most this is flat (score 0), as
@@ -300,7 +302,9 @@ class ReferenceSet:
         )
 
 
-def _dot_tracks(curves: F64, vrange: F64, dots: F32, spacing_px: float) -> F64:
+def _dot_tracks(
+    curves: F64, vrange: F64, dots: F32, spacing_px: float, dot_density: float | None = None
+) -> F64:
     """The dots' tracks between reference images that :func:`estimate_epipole` meets.
 
     For each pair of images (a, b), a < b, and each slit, templates beside the slit in image a,
@@ -315,6 +319,9 @@ def _dot_tracks(curves: F64, vrange: F64, dots: F32, spacing_px: float) -> F64:
     vrange : (R, N, 2) float64, px, rows where each curve was seen
     dots : (R, H, W) float32, the dot images
     spacing_px : float, px, slit spacing (sizes the templates and the search)
+    dot_density : float, dots per px^2 in the slit field; a template is made tall enough to
+        hold ``_EPIPOLE_DOTS`` dots on average (up to 4 slit spacings): with only a few dots,
+        chance matches outnumber true ones. Default None: 0.6 slit spacings tall
 
     Returns
     -------
@@ -324,6 +331,9 @@ def _dot_tracks(curves: F64, vrange: F64, dots: F32, spacing_px: float) -> F64:
     R, N = curves.shape[:2]
     hw = max(3, int(round(0.35 * spacing_px)))
     hh = max(6, int(round(0.6 * spacing_px)))
+    if dot_density is not None and dot_density > 0:
+        want = _EPIPOLE_DOTS / dot_density / (2 * hw + 1) / 2
+        hh = max(hh, int(round(min(want, 4.0 * spacing_px))))
     search = int(round(2.5 * spacing_px))
     step = max(hh, 8)  # px between templates: whole, so the searches share candidate rows
     offs = np.arange(-search, search + 1, 1.0)
@@ -366,7 +376,12 @@ def _dot_tracks(curves: F64, vrange: F64, dots: F32, spacing_px: float) -> F64:
 
 
 def estimate_epipole(
-    curves: F64, vrange: F64, dots: F32, spacing_px: float, image_height: int
+    curves: F64,
+    vrange: F64,
+    dots: F32,
+    spacing_px: float,
+    image_height: int,
+    dot_density: float | None = None,
 ) -> tuple[F64, float]:
     """The dot projector's epipole from dots matched between reference images.
 
@@ -376,12 +391,22 @@ def estimate_epipole(
     squares meeting point of all tracks (homogeneous, so it may lie far outside the image or at
     infinity).
 
+    Parameters
+    ----------
+    curves : (R, N, D+1) float64, u = p(v) per reference image and slit
+    vrange : (R, N, 2) float64, px, rows where each curve was seen
+    dots : (R, H, W) float32, the dot images
+    spacing_px : float, px, slit spacing
+    image_height : int, px
+    dot_density : float, dots per px^2 in the slit field: the templates are made to hold about
+        a dozen dots (see :func:`_dot_tracks`); default None: 0.6 slit spacings tall
+
     Returns
     -------
     epipole : (3,) homogeneous, unit norm
     rms : float, px, RMS distance of the track lines' far ends to the fitted epipole line
     """
-    T = _dot_tracks(curves, vrange, dots, spacing_px)
+    T = _dot_tracks(curves, vrange, dots, spacing_px, dot_density)
     if len(T) < 4:
         raise ReferenceImageError(
             f"could not match the dots between reference images ({len(T)} matches): the "
@@ -544,10 +569,10 @@ def prepare_reference(
     vr_a = np.array(vranges)
     dots_a = np.array(dots)
     sp = float(np.median(spacing)) if spacing else float(w) / 4
-    epi, rms = estimate_epipole(curves_a, vr_a, dots_a, sp, h)
     density = float(
         np.median([_dot_density(d, c, vr) for d, c, vr in zip(dots_a, curves_a, vr_a, strict=True)])
     )
+    epi, rms = estimate_epipole(curves_a, vr_a, dots_a, sp, h, density)
     return ReferenceSet(
         (int(w), int(h)),
         int(num_slits),
