@@ -200,3 +200,12 @@ def test_sheared_patches_shift_each_row(rng):
         assert np.allclose(got[:, j], moved[:, j], atol=1e-3)
     with pytest.raises(ValueError, match="row_shift must have shape"):
         sample_sheared_patches(img, centres, half_w, half_h, np.zeros((50, ph - 1)))
+    # ... and moved down by r_j as well: that row of the patch centred (s_j, r_j) away
+    rise = rng.uniform(-2, 2, (50, ph))
+    got = sample_sheared_patches(img, centres, half_w, half_h, shift, row_rise=rise)
+    for j in (0, half_h, ph - 1):
+        moved = sample_patches(img, centres + np.c_[shift[:, j], rise[:, j]], half_w, half_h)
+        assert np.allclose(got[:, j], moved[:, j], atol=1e-3)
+    assert not np.allclose(got, sample_sheared_patches(img, centres, half_w, half_h, shift))
+    with pytest.raises(ValueError, match="row_rise must have shape"):
+        sample_sheared_patches(img, centres, half_w, half_h, shift, row_rise=rise[:, 1:])

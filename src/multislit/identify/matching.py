@@ -329,6 +329,22 @@ def _hypotheses(
     return cu, cv, rr, ok, valid_any
 
 
+#: Largest vertical dot motion per px of sideways motion that a template follows (the slope of
+#: the dot projector's epipolar lines; beyond it the rig has the dots move mostly vertically).
+_MAX_RISE = 1.0
+
+
+def _dot_rise(ref: ReferenceSet, uv: F64) -> F64:
+    """(M,) the vertical motion of the dots per px of sideways motion at each point: the slope
+    of the dot projector's epipolar line through it (a surface's depth change moves the slit
+    along the row but the dots along that line)."""
+    ln = ref.epipolar_lines(uv)  # unit normal (a, b): direction (b, -a)
+    dx, dy = ln[:, 1], -ln[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(np.abs(dx) > 1e-12, dy / dx, 0.0)
+    return np.clip(t, -_MAX_RISE, _MAX_RISE)
+
+
 def score_candidates(
     ref: ReferenceSet,
     scan_dots: NDArray,
@@ -348,7 +364,9 @@ def score_candidates(
     p : the template size and matching modes
     allowed : (M, N) bool, the hypotheses scored per sample (others stay NaN); default all
     row_shift : (M, 2*hh+1) float64, px, sideways shift of the template's rows
-        (:func:`template_row_shift`); default upright templates
+        (:func:`template_row_shift`); each row also moves along the dot projector's epipolar
+        line as far as the shift says (a depth change moves the dots along that line, the
+        slit along the row); default upright templates
 
     Returns
     -------
@@ -374,7 +392,9 @@ def score_candidates(
     if row_shift is None:
         patches = sample_patches(scan_dots, uv, hw, hh)
     else:
-        patches = sample_sheared_patches(scan_dots, uv, hw, hh, row_shift)
+        patches = sample_sheared_patches(
+            scan_dots, uv, hw, hh, row_shift, row_rise=row_shift * _dot_rise(ref, uv)[:, None]
+        )
     tmpl = normalise_patches(patches)  # (M, K)
     rr_f = np.where(fast, rr, 0).reshape(M, -1)
     cu_f = np.where(fast, cu, hw).reshape(M, -1)

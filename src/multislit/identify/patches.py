@@ -173,10 +173,16 @@ def _patch_columns_kernel(image_t, x0, y0, fx, fy, out, s1, s2):
 
 
 def _remap_patches(
-    image: F32, centres: F64, half_w: int, half_h: int, row_shift: F64 | None = None
+    image: F32,
+    centres: F64,
+    half_w: int,
+    half_h: int,
+    row_shift: F64 | None = None,
+    row_rise: F64 | None = None,
 ) -> F32:
-    """:func:`sample_patches` by ``cv2.remap`` (zero outside the image); ``row_shift`` (M, ph)
-    moves each patch row sideways (see :func:`sample_sheared_patches`)."""
+    """:func:`sample_patches` by ``cv2.remap`` (zero outside the image); ``row_shift`` and
+    ``row_rise`` (M, ph) move each patch row sideways and down (see
+    :func:`sample_sheared_patches`)."""
     m = len(centres)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
     du = np.arange(-half_w, half_w + 1, dtype=np.float32)
@@ -185,6 +191,8 @@ def _remap_patches(
     if row_shift is not None:
         mx += row_shift.astype(np.float32)[:, :, None]
     my = (centres[:, 1, None, None].astype(np.float32) + dv[None, :, None]).repeat(pw, axis=2)
+    if row_rise is not None:
+        my += row_rise.astype(np.float32)[:, :, None]
     mx = mx.reshape(m * ph, pw)
     my = my.reshape(m * ph, pw)
     out = np.empty((m * ph, pw), np.float32)
@@ -202,13 +210,22 @@ def _remap_patches(
 
 
 def sample_sheared_patches(
-    image: F32, centres: F64, half_w: int, half_h: int, row_shift: F64
+    image: F32,
+    centres: F64,
+    half_w: int,
+    half_h: int,
+    row_shift: F64,
+    *,
+    row_rise: F64 | None = None,
 ) -> F32:
-    """Bilinear patches whose rows are shifted sideways: row j of patch m is centred on column
-    ``centres[m, 0] + row_shift[m, j]`` of image row ``centres[m, 1] + j - half_h``.
+    """Bilinear patches whose rows are shifted: row j of patch m is centred on column
+    ``centres[m, 0] + row_shift[m, j]`` of image row ``centres[m, 1] + j - half_h +
+    row_rise[m, j]``.
 
     This straightens a slanted or curved stripe in a template (the dots keep their place
     across the stripe), so that it can be compared with a reference patch of another slant.
+    Where the dots move with depth along a line that is not a row (the dot projector's
+    epipolar line), ``row_rise`` gives the motion's vertical part.
 
     Parameters
     ----------
@@ -216,6 +233,7 @@ def sample_sheared_patches(
     centres : (M, 2) float64, px (u, v)
     half_w, half_h : patch half sizes, px
     row_shift : (M, 2*half_h+1) float64, px, sideways shift of each patch row
+    row_rise : (M, 2*half_h+1) float64, px, downward shift of each patch row; default none
 
     Returns
     -------
@@ -225,9 +243,13 @@ def sample_sheared_patches(
     shift = np.asarray(row_shift, dtype=np.float64)
     if shift.shape != (len(centres), ph):
         raise ValueError(f"row_shift must have shape ({len(centres)}, {ph}), got {shift.shape}")
+    if row_rise is not None:
+        row_rise = np.asarray(row_rise, dtype=np.float64)
+        if row_rise.shape != shift.shape:
+            raise ValueError(f"row_rise must have shape {shift.shape}, got {row_rise.shape}")
     if len(centres) == 0:
         return np.zeros((0, ph, 2 * half_w + 1), np.float32)
-    return _remap_patches(np.asarray(image, np.float32), centres, half_w, half_h, shift)
+    return _remap_patches(np.asarray(image, np.float32), centres, half_w, half_h, shift, row_rise)
 
 
 def normalise_patches(p: F32) -> F32:
