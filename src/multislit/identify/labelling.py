@@ -189,6 +189,7 @@ def identify(
     order_fill: bool = True,
     end_order: bool = True,
     extraction: SlitExtraction | None = None,
+    previous: Identification | None = None,
 ) -> Identification:
     """Find the slits in one image and give each stripe-centre point its slit number.
 
@@ -207,6 +208,14 @@ def identify(
         the segment's slit; default True
     extraction : an extraction of ``image`` already made (skips extracting again); default
         None: extract with the reference's stripe width and dot size
+    previous : the :class:`Identification` of the previous frame of a sequence (the same
+        camera and reference), used as a prior: a segment lying on a piece ``previous``
+        labelled with slit k is checked against slits k-1..k+1 only, on about one sample per
+        template height (a sample slit k explains poorly is searched over all slits), and
+        keeps k where k wins with the confidence this vote requires and no sample prefers
+        another slit; a segment failing the check, or without such a piece, is searched over
+        all slits (:mod:`~multislit.identify.prior`). Default None: every segment is searched
+        (single images)
 
     Returns
     -------
@@ -217,14 +226,19 @@ def identify(
     ------
     IdentificationError
         (a ``ValueError``) if ``image`` is not a grayscale image of the reference's size, or
-        ``min_confidence`` is not in [0, 1].
+        ``min_confidence`` is not in [0, 1], or ``previous`` is not an Identification of an
+        image of the reference's size.
     """
     if not 0.0 <= min_confidence <= 1.0:  # also catches NaN
         raise IdentificationError(f"min_confidence must be in [0, 1], got {min_confidence}")
+    if previous is not None:
+        from multislit.identify.prior import check_previous  # (prior imports this module)
+
+        check_previous(previous, reference)
     options = _Options(
         min_confidence=min_confidence, order_fill=bool(order_fill), end_order=bool(end_order)
     )
-    return _identify(image, reference, extraction, options)
+    return _identify(image, reference, extraction, options, previous)
 
 
 def _identify(
@@ -232,6 +246,7 @@ def _identify(
     reference: ReferenceSet,
     extraction: SlitExtraction | None,
     p: _Options,
+    previous: Identification | None = None,
 ) -> Identification:
     """:func:`identify` with all its settings in ``p`` (tests and benchmarks vary its modes)."""
     img = as_image(image)
@@ -267,7 +282,15 @@ def _identify(
     step = max(2.0, _SAMPLE_STEP * reference.spacing_px)
     hh = p.template_size(reference)[1]
     si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
-    scores = _sample_scores(ex, seg, si, reference, hh, p)
+    if previous is None:
+        scores = _sample_scores(ex, seg, si, reference, hh, p)
+    else:  # the previous frame's labels: checked, not searched (prior imports this module)
+        from multislit.identify.prior import scores_with_prior
+
+        reach = max(step, hh)
+        si, scores = scores_with_prior(
+            ex, seg, si, reference, hh, reach, p, previous, _sample_scores
+        )
     seg = split_at_winner_changes(seg, ex.v, si, scores, _MIN_SCORE)
     lut_k, lut_c, dot_votes, dropped = _segment_decisions(seg, si, scores, p.min_confidence)
     has = _vouched_points(ex, seg, si, scores, max(step, hh), lut_k, hh)

@@ -3,7 +3,8 @@
 A rig is described by a :class:`RigSpec` (camera, slit projector, dot projector, sensor) and
 built into truth models by :meth:`SimulatedRig.build`; a :class:`Scene` is a list of
 primitives; :func:`render` makes one camera image with its per-pixel truth and
-:func:`simulate_capture` writes a whole capture folder. :func:`random_rig` and
+:func:`simulate_capture` writes a whole capture folder, :func:`simulate_sequence` renders frames
+of objects moving across the field. :func:`random_rig` and
 :func:`random_scene` draw rigs and scenes from the range real builders use;
 :func:`identification_metrics`, :func:`object_metrics` and :func:`coverage_losses` score an
 identification against the truth.
@@ -29,6 +30,7 @@ from multislit.sim.primitives import (
 from multislit.sim.render import Rendered, render
 from multislit.sim.rig import RigSpec, SimulatedRig, dense_rig
 from multislit.sim.scene import SCENES, TargetDesign, make_scene, reference_board, standard_object
+from multislit.sim.sequence import SimulatedSequence, moving_scene, simulate_sequence
 from multislit.sim.simulate import Progress, simulate_capture
 from multislit.sim.zoo import random_rig, random_scene, simulate_zoo_capture, zoo_target
 
@@ -45,6 +47,7 @@ __all__ = [
     "RigSpec",
     "Scene",
     "SimulatedRig",
+    "SimulatedSequence",
     "Sphere",
     "TargetDesign",
     "constant",
@@ -52,6 +55,7 @@ __all__ = [
     "dense_rig",
     "identification_metrics",
     "make_scene",
+    "moving_scene",
     "noise_texture",
     "object_metrics",
     "random_rig",
@@ -59,6 +63,7 @@ __all__ = [
     "reference_board",
     "render",
     "simulate_capture",
+    "simulate_sequence",
     "simulate_zoo_capture",
     "standard_object",
     "zoo_target",
