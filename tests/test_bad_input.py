@@ -277,6 +277,8 @@ def test_scan_image_needs_a_reference_and_a_calibration(tmp_path):
     ref = SimpleNamespace(curves=np.zeros((2, 25, 3)))  # looks like one, is not one
     with pytest.raises(MeasurementError, match="got SimpleNamespace"):
         scan_image(img, ref, cal)
+    with pytest.raises(MeasurementError, match="previous must be the ScanResult .* got str"):
+        scan_image(img, ref, cal, previous="frame_000001.ply")
 
 
 @pytest.mark.parametrize(

@@ -542,3 +542,20 @@ def test_batch_unreachable_scheduler(calibrated, frames_dir, tmp_path, capsys, m
     assert code == 2 and "cannot reach the Dask scheduler" in err
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_prior_keeps_the_slits_of_the_full_search(calibrated, frames_dir, serial_out, tmp_path):
+    """With ``--prior`` each frame is checked against the previous frame's slits first: no point
+    gets another slit than the single-image scan gives it, and almost none is lost."""
+    out = tmp_path / "prior"
+    assert main(["stream", str(calibrated), str(frames_dir), "-o", str(out), "--prior"]) == 0
+    for a, b in zip(sorted(serial_out.glob("*.ply")), sorted(out.glob("*.ply")), strict=True):
+        want, got = read_ply(a), read_ply(b)
+        kw = np.round(want["v"]) * 1e5 + np.round(want["u"], 2)
+        kg = np.round(got["v"]) * 1e5 + np.round(got["u"], 2)
+        common, iw, ig = np.intersect1d(kw, kg, return_indices=True)
+        assert np.array_equal(want["slit"][iw], got["slit"][ig]), a.name
+        assert len(common) >= 0.99 * len(kw), a.name
+    argv = ["stream", str(calibrated), str(frames_dir), "-o", str(tmp_path / "o"), "--prior"]
+    assert main([*argv, "--workers", "2"]) == 2

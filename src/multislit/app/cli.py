@@ -298,6 +298,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         channel=args.channel,
         calibration=args.calibration,
         camera_features=_camera_features(args.pylon),
+        prior=args.prior,
         overwrite=args.overwrite,
         progress=ProgressLine("stream: "),
     )
@@ -446,6 +447,12 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("stream", help="scan a stream of frames: camera, video or images")
     _frame_options(st)
     st.add_argument("--workers", type=int, default=1, help="processes scanning frames (default 1)")
+    st.add_argument(
+        "--prior",
+        action="store_true",
+        help="check each frame's stripes against the previous frame's slits first (faster on "
+        "a moving scene; frames in order, --workers 1)",
+    )
     st.add_argument(
         "--pylon",
         action="append",

@@ -40,7 +40,7 @@ from multislit.errors import MeasurementError
 from multislit.identify import ReferenceSet, capture_reference, template_size
 from multislit.io import Capture, json_safe, write_ply
 from multislit.io.sources import FrameSource, open_source
-from multislit.reconstruct import load_capture_calibration, scan_image
+from multislit.reconstruct import ScanResult, load_capture_calibration, scan_image
 
 __all__ = [
     "FrameResult",
@@ -99,9 +99,22 @@ def scan_frame(
     reference, calibration : the capture's prepared reference set and calibration
     name : str, a name for messages. Default ''.
     """
+    return _frame_result(*_timed_scan(image, reference, calibration, name, None))
+
+
+def _timed_scan(
+    image: NDArray,
+    reference: ReferenceSet,
+    calibration: Calibration,
+    name: str,
+    previous: ScanResult | None,
+) -> tuple[ScanResult, float]:
     t0 = time.perf_counter()
-    res = scan_image(image, reference, calibration, name=name)
-    ms = (time.perf_counter() - t0) * 1000.0
+    res = scan_image(image, reference, calibration, name=name, previous=previous)
+    return res, (time.perf_counter() - t0) * 1000.0
+
+
+def _frame_result(res: ScanResult, ms: float) -> FrameResult:
     return FrameResult(res.points, res.u, res.v, res.slit, res.confidence, res.num_slits_found, ms)
 
 
@@ -188,15 +201,22 @@ class Runner(Protocol):
 
 
 class InlineRunner:
-    """Scans each frame at once in this process."""
+    """Scans each frame at once in this process, in order; with ``prior``, each frame's slit
+    labels are the prior for the next frame's identification (``scan_image(previous=)``)."""
 
     capacity = 1
 
-    def __init__(self, reference: ReferenceSet, calibration: Calibration) -> None:
-        self.reference, self.calibration = reference, calibration
+    def __init__(
+        self, reference: ReferenceSet, calibration: Calibration, *, prior: bool = False
+    ) -> None:
+        self.reference, self.calibration, self.prior = reference, calibration, bool(prior)
+        self._last: ScanResult | None = None
 
     def submit(self, image: NDArray, name: str) -> FrameResult:
-        return scan_frame(image, self.reference, self.calibration, name=name)
+        res, ms = _timed_scan(image, self.reference, self.calibration, name, self._last)
+        if self.prior:
+            self._last = res
+        return _frame_result(res, ms)
 
     def done(self, handle: FrameResult) -> bool:
         return True
@@ -427,6 +447,7 @@ def stream(
     calibration: str | os.PathLike[str] | None = None,
     camera_features: Sequence[tuple[str, str]] = (),
     overwrite: bool = False,
+    prior: bool = False,
     progress: Callable[..., None] | None = None,
 ) -> StreamSummary:
     """Scan every frame of ``source`` and write ``out`` (see the module's text).
@@ -450,6 +471,13 @@ def stream(
     camera_features : (name, value) pairs set on a Basler camera. Default none.
     overwrite : bool
         Replace the frames already in ``out``. Default False.
+    prior : bool
+        Identify each frame with the previous frame's slits as a prior (``scan_image``'s
+        ``previous``): a stripe where the last frame had slit k is checked against k-1..k+1
+        and searched in full only when the check fails. Faster on a moving scene, the same
+        slit numbers; confidences are measured against the neighbouring slits, so a few
+        points can differ from a single-image scan. Needs ``workers`` 1 (frames in order).
+        Default False.
     progress : see :func:`run_frames`
 
     Raises
@@ -458,6 +486,10 @@ def stream(
         A bad capture, calibration, SOURCE, option or (with ``on_bad_frame='stop'``) frame.
     """
     _positive(workers, "workers")
+    if prior and workers != 1:
+        raise MeasurementError(
+            f"prior needs the frames in order in one process: use workers 1, not {workers}"
+        )
     _positive(every, "every")
     _positive(max_frames, "max_frames", allow_none=True)
     if on_bad_frame not in ("skip", "stop"):
@@ -476,7 +508,7 @@ def stream(
         writer = FrameWriter(out, overwrite=overwrite)
         ref = capture_reference(cap)
         if workers == 1:
-            runner = InlineRunner(ref, cal)
+            runner = InlineRunner(ref, cal, prior=prior)
         else:
             runner = ProcessRunner(ref, cal, workers, live=src.live)
         return run_frames(

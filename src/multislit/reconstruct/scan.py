@@ -319,11 +319,20 @@ def _scan(
     min_angle_deg: float,
     name: str,
     end_order: bool,
+    previous: ScanResult | None = None,
 ) -> ScanResult:
     """Identify, optionally refine the centres, and triangulate (see :func:`scan_image`)."""
+    if previous is not None and not isinstance(previous, ScanResult):
+        raise MeasurementError(
+            f"previous must be the ScanResult of the previous frame, got {type(previous).__name__}"
+        )
     size, planes = _check_scan_inputs(image, reference, calibration)
+    prior = None
+    if previous is not None:
+        if len(previous.points) and tuple(previous.image_size) == tuple(size):
+            prior = previous.identification  # a frame that was no scan is no prior
     t0 = time.perf_counter()
-    ident = identify(image, reference, end_order=end_order)
+    ident = identify(image, reference, end_order=end_order, previous=prior)
     m = ident.slit >= 0
     problem = _not_a_scan(ident)
     if problem:
@@ -364,6 +373,7 @@ def scan_image(
     refine_centres: bool = True,
     min_angle_deg: float = 2.0,
     name: str = "",
+    previous: ScanResult | None = None,
 ) -> ScanResult:
     """Measure the 3D points of one image.
 
@@ -380,6 +390,11 @@ def scan_image(
         Lines of sight meeting a slit plane at a smaller angle are dropped. Default 2.0.
     name : str
         A name for messages and the summary. Default ''.
+    previous : ScanResult
+        The result of the previous frame of a sequence (the same rig, frames in order): its
+        slit labels are a prior that the identification checks instead of searching every
+        slit (see :func:`~multislit.identify.identify`'s ``previous``); a frame that gave no
+        points is not used. Default None: the full search (single images).
 
     Returns
     -------
@@ -395,7 +410,7 @@ def scan_image(
         number of slits than the reference.
     MeasurementError
         ``reference`` is not a :class:`~multislit.identify.ReferenceSet`, or was prepared for
-        another image size.
+        another image size, or ``previous`` is not a :class:`ScanResult`.
     """
     return _scan(
         image,
@@ -405,6 +420,7 @@ def scan_image(
         min_angle_deg=min_angle_deg,
         name=name,
         end_order=True,
+        previous=previous,
     )
 
 
