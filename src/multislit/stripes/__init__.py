@@ -29,8 +29,11 @@ keeps only centres that look like a laser line (:func:`stripe_like`, :func:`text
 :func:`along_slits`, linked over rows): edges, checker corners, texture and JPEG blocks go.
 
 Pixel convention: (u, v), u right (column), v down (row), (0, 0) the centre of the top-left
-pixel. Everything is vectorised over the whole image.
+pixel. Whole-image passes are OpenCV or NumPy; the loops NumPy cannot vectorise (the dots'
+refill, the row maxima, the linking) are compiled with Numba (:func:`compile_kernels`).
 """
+
+import numpy as np
 
 from multislit.stripes.centres import (
     CENTRE_METHODS,
@@ -51,11 +54,11 @@ from multislit.stripes.linking import (
 )
 from multislit.stripes.refine import (
     REFINE_STEGER_SCALE,
-    compile_kernels,
     refine_centres,
     refine_half_rows,
     refine_slit_image,
 )
+from multislit.stripes.refine import compile_kernels as _compile_refine_kernels
 from multislit.stripes.separation import (
     BACKGROUNDS,
     STREAK_ANGLES_DEG,
@@ -119,3 +122,26 @@ __all__ = [
     "refine_centres",
     "compile_kernels",
 ]
+
+
+def compile_kernels() -> None:
+    """Compile the package's Numba kernels now: the refinement's and the extraction's.
+
+    Numba compiles each kernel on first use and caches the machine code on disk beside the
+    package, so only the first run after an install pays it. ``make demo`` and ``make test``
+    call this once after installing. The extraction is run on small uint8, uint16 and
+    float32 images (each pixel type has its own machine code).
+    """
+    from multislit.stripes.separation import fill_dots
+
+    _compile_refine_kernels()
+    img = np.zeros((48, 48), np.uint8)
+    img[:, 22:26] = 200
+    img[10:12, 30:32] = 120  # a dot beside the stripe
+    img[30:32, 23:25] = 255
+    for x in (img, img.astype(np.uint16) << 4, img.astype(np.float32) / 255.0):
+        extract_slits(x, 4.0, 2.0)
+        extract_slits(x)
+        extract_slits(x, 4.0, 2.0, reject_texture=True)
+        fill_dots(x, vertical_opening(x, 5), 1.0, 5)
+        fill_dots(x, vertical_opening(x, 5), 1.0, 5, stripe_slope(x, 2.5))

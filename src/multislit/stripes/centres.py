@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.separation import mask_runs, quantisation_step
@@ -65,24 +66,72 @@ def estimate_noise(image: ArrayLike) -> float:
     return max(sigma, quantisation_step(img) / math.sqrt(12.0))  # at least quantisation noise
 
 
+@njit(cache=True)
+def _gather_kernel(img, r, c, offsets, wts):
+    """:func:`_gather`: (K, len(offsets)) float64, the binomial rows ``wts`` accumulated in
+    order (as ``out += wts[i] * img[...]``)."""
+    h, w = img.shape
+    half = wts.size // 2
+    out = np.zeros((r.size, offsets.size), np.float64)
+    for k in range(r.size):
+        for j in range(offsets.size):
+            col = min(max(c[k] + offsets[j], 0), w - 1)
+            acc = 0.0
+            for i in range(wts.size):
+                row = min(max(r[k] + i - half, 0), h - 1)
+                acc += wts[i] * float(img[row, col])
+            out[k, j] = acc
+    return out
+
+
 def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 1) -> F64:
     """Values img[r, c + offsets] as (K, len(offsets)) float64, averaged over ``taps`` rows.
 
     With ``taps`` > 1 (odd), each value is a binomial-weighted average over rows r - taps // 2
     .. r + taps // 2 (clamped to the image): smoothing along the stripe, which for a straight,
     tilted stripe keeps the row's profile symmetric about its centre and divides the noise.
+    Columns are clamped to the image too. One compiled pass.
     """
-    h, w = img.shape
-    cols = np.clip(c[:, None] + offsets[None, :], 0, w - 1)
-    if taps <= 1:
-        return img[r[:, None], cols].astype(np.float64)
-    half = taps // 2
-    wts = np.array([math.comb(taps - 1, i) for i in range(taps)], np.float64) / 2.0 ** (taps - 1)
-    out = np.zeros(cols.shape, np.float64)
-    for i, dv in enumerate(range(-half, half + 1)):  # loop over the few taps only
-        rows = np.clip(r + dv, 0, h - 1)
-        out += wts[i] * img[rows[:, None], cols]
-    return out
+    taps = max(int(taps), 1)
+    if taps == 1:
+        wts = np.ones(1)
+    else:
+        wts = np.array([math.comb(taps - 1, i) for i in range(taps)], np.float64) / 2.0 ** (
+            taps - 1
+        )
+    return _gather_kernel(
+        img,
+        np.ascontiguousarray(r, np.intp),
+        np.ascontiguousarray(c, np.intp),
+        np.ascontiguousarray(offsets, np.intp),
+        wts,
+    )
+
+
+@njit(cache=True)
+def _row_maxima(s, thr, near, use_near):
+    """Rows and columns (K,) of the pixels of ``s`` (H, W) greater than their left and not
+    less than their right neighbour and than ``thr`` (float64, compared exactly), outside
+    ``near`` (H, W) where ``use_near``; row-major. Two compiled passes (count, then fill)."""
+    h, w = s.shape
+    rr = np.empty(0, np.intp)
+    cc = np.empty(0, np.intp)
+    for fill in range(2):
+        k = 0
+        for r in range(h):
+            row = s[r]
+            for c in range(1, w - 1):
+                m = row[c]
+                if float(m) > thr and m > row[c - 1] and m >= row[c + 1]:
+                    if not (use_near and near[r, c]):
+                        if fill:
+                            rr[k] = r
+                            cc[k] = c
+                        k += 1
+        if not fill:
+            rr = np.empty(k, np.intp)
+            cc = np.empty(k, np.intp)
+    return rr, cc
 
 
 def _three_point(a: F64, b: F64, c: F64, method: str) -> tuple[F64, F64]:
@@ -139,6 +188,9 @@ def _saturated_centres(
     run and the (H, W) mask of pixels within 1 px of a run (no ordinary peak is taken there).
     """
     h, w = sat.shape
+    if not sat.any():  # the usual case: nothing saturates
+        e = np.empty(0)
+        return e, e, e, e, e, np.zeros((h, w), bool)
     m = np.zeros((h, w + 2), np.int8)
     m[:, 1:-1] = sat
     d = np.diff(m, axis=1)
@@ -265,14 +317,15 @@ def find_centres_validated(
     if w < 3:
         e = np.empty(0)
         return StripeCentres(e, e, e, e)
-    mid = s[:, 1:-1]
-    thr = math.floor(threshold) if np.issubdtype(s.dtype, np.integer) else threshold
-    is_max = (mid > s[:, :-2]) & (mid >= s[:, 2:]) & (mid > thr)
+    if np.issubdtype(s.dtype, np.integer):
+        thr = math.floor(threshold)
+        thr_exact = float(thr)
+    else:  # a float32 image is compared with the threshold rounded to float32
+        thr = threshold
+        with np.errstate(over="ignore"):
+            thr_exact = float(np.float32(threshold))
     su, sv, speak, swidth, sreach, near = _saturated_centres(s, sat)
-    if sv.size:
-        is_max &= ~near[:, 1:-1]
-    r, c = np.nonzero(is_max)
-    c = c + 1
+    r, c = _row_maxima(s, thr_exact, near, sv.size > 0)
     # smoothed samples at c-2 .. c+2; re-centre on the smoothed maximum among c-1 .. c+1
     vals = _gather(s, r, c, np.arange(-2, 3), taps)
     j = 1 + np.argmax(vals[:, 1:4], axis=1)
@@ -341,19 +394,61 @@ def along_slits(slit_image: NDArray, u: F64, v: F64, stripe_width_px: float) -> 
     """
     if u.size == 0:
         return np.ones(0, bool)
-    x = slit_image.astype(np.float32)
+    # Sobel straight from integer data: its sums are integers below 2^24, exact in float32
+    ok = slit_image.dtype in (np.uint8, np.uint16, np.float32)
+    x = slit_image if ok else slit_image.astype(np.float32)
     gu = cv2.Sobel(x, cv2.CV_32F, 1, 0, ksize=3)
     gv = cv2.Sobel(x, cv2.CV_32F, 0, 1, ksize=3)
     r = np.rint(v).astype(np.intp)
     c = np.clip(np.rint(u).astype(np.intp), 0, x.shape[1] - 1)
-    juu = cv2.GaussianBlur(gu * gu, (0, 0), stripe_width_px)[r, c]
-    jvv = cv2.GaussianBlur(gv * gv, (0, 0), stripe_width_px)[r, c]
+    juu = cv2.GaussianBlur(cv2.multiply(gu, gu, dst=gu), (0, 0), stripe_width_px)[r, c]
+    jvv = cv2.GaussianBlur(cv2.multiply(gv, gv, dst=gv), (0, 0), stripe_width_px)[r, c]
     return jvv <= math.tan(math.radians(MAX_LEAN_DEG)) ** 2 * juu
 
 
 #: Side of the blocks (in stripe widths, at least 16 px) over which :func:`texture_sigma`
 #: takes its medians.
 TEXTURE_BLOCK_WIDTHS = 4.0
+
+
+@njit(cache=True)
+def _block_medians_u8(x, lag, b, nb_v, nb_u):
+    """(nb_v, nb_u) float32: the median (np.median's, the mean of the middle two of an even
+    count) of |x[r + lag, c] - x[r, c]| over each ``b`` x ``b`` block of a uint8 image, the
+    blocks past the last difference row or image column reading the last one (np.pad's
+    "edge"), by a histogram of the 256 values a block can hold."""
+    h, w = x.shape
+    hd = h - lag
+    n = b * b
+    out = np.empty((nb_v, nb_u), np.float32)
+    hist = np.empty(256, np.int64)
+    for i in range(nb_v):
+        for j in range(nb_u):
+            hist[:] = 0
+            for rr in range(i * b, (i + 1) * b):
+                r = min(rr, hd - 1)
+                lo = x[r]
+                hi = x[r + lag]
+                for cc in range(j * b, (j + 1) * b):
+                    c = min(cc, w - 1)
+                    a = int(hi[c])
+                    e = int(lo[c])
+                    hist[a - e if a >= e else e - a] += 1
+            # values of ranks n // 2 - 1 and n // 2 (0-based)
+            k_lo = n // 2 - 1 if n % 2 == 0 else n // 2
+            k_hi = n // 2
+            v_lo = -1
+            v_hi = -1
+            cum = 0
+            for v in range(256):
+                cum += hist[v]
+                if v_lo < 0 and cum > k_lo:
+                    v_lo = v
+                if cum > k_hi:
+                    v_hi = v
+                    break
+            out[i, j] = np.float32(np.float32(v_lo) + np.float32(v_hi)) / np.float32(2.0)
+    return out
 
 
 def texture_sigma(slit_image: NDArray, stripe_width_px: float) -> NDArray[np.float32]:
@@ -370,12 +465,17 @@ def texture_sigma(slit_image: NDArray, stripe_width_px: float) -> NDArray[np.flo
     h, w = slit_image.shape
     lag = max(1, math.ceil(stripe_width_px))
     b = max(16, math.ceil(TEXTURE_BLOCK_WIDTHS * stripe_width_px))
-    x = slit_image.astype(np.float32)
-    d = np.abs(x[lag:] - x[:-lag])
     nb_v, nb_u = -(-h // b), -(-w // b)
-    pad = np.pad(d, ((0, nb_v * b - d.shape[0]), (0, nb_u * b - w)), mode="edge")
-    blocks = pad.reshape(nb_v, b, nb_u, b).transpose(0, 2, 1, 3).reshape(nb_v, nb_u, b * b)
-    level = np.median(blocks, axis=2).astype(np.float32) * (1.4826 / math.sqrt(2.0))
+    if slit_image.dtype == np.uint8 and h > lag:
+        # the differences are integers 0..255: each block's median from its histogram
+        med = _block_medians_u8(slit_image, lag, b, nb_v, nb_u)
+    else:
+        x = slit_image.astype(np.float32)
+        d = np.abs(x[lag:] - x[:-lag])
+        pad = np.pad(d, ((0, nb_v * b - d.shape[0]), (0, nb_u * b - w)), mode="edge")
+        blocks = pad.reshape(nb_v, b, nb_u, b).transpose(0, 2, 1, 3).reshape(nb_v, nb_u, b * b)
+        med = np.median(blocks, axis=2).astype(np.float32)
+    level = med * (1.4826 / math.sqrt(2.0))
     level = cv2.dilate(level, np.ones((3, 3), np.uint8))
     return cv2.resize(level, (nb_u * b, nb_v * b), interpolation=cv2.INTER_NEAREST)[:h, :w]
 

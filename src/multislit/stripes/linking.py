@@ -7,9 +7,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from multislit.stripes.centres import (
     CENTRE_METHODS,
@@ -93,7 +92,8 @@ def link_segments(
     A point p in row v is linked to a point q in the first row v + g (g = 1 .. max_gap + 1)
     that has any point within ``max_du * g`` px of p's column, if q is the only such point
     there and p is likewise the only candidate in q's first non-empty row above. Ambiguities
-    (two candidates), jumps and longer gaps break the chain. Vectorised with ``searchsorted``.
+    (two candidates), jumps and longer gaps break the chain. One sort and a compiled linear
+    pass (the windows move monotonically along the sorted points).
 
     Parameters
     ----------
@@ -125,7 +125,12 @@ def link_segments(
     if n == 0:
         return np.empty(0, np.int64)
     rows = np.rint(vv)
-    order = np.lexsort((uu, rows))
+    if n > 1 and bool(
+        np.all((rows[1:] > rows[:-1]) | ((rows[1:] == rows[:-1]) & (uu[1:] >= uu[:-1])))
+    ):
+        order = np.arange(n)  # already sorted by (row, u), as the centres come
+    else:
+        order = np.lexsort((uu, rows))
     us = uu[order] - uu.min()
     rs = rows[order] - rows.min()
     max_g = int(max_gap) + 1
@@ -133,44 +138,69 @@ def link_segments(
     # search window never spills into another row
     span = float(us.max()) + 2 * max_du * max_g + 2.0
     key = rs * span + us
-    idx = np.arange(n)
-
-    def first_neighbour(sign: int) -> tuple[I64, I64]:
-        """Per point: index of the unique candidate in the first non-empty row (-1 if none,
-        -2 if ambiguous) and that row distance."""
-        found = np.full(n, -1, np.int64)
-        dist = np.zeros(n, np.int64)
-        done = np.zeros(n, bool)
-        for g in range(1, max_g + 1):
-            tol = max_du * g
-            centre = key + sign * g * span
-            lo = np.searchsorted(key, centre - tol, "left")
-            hi = np.searchsorted(key, centre + tol, "right")
-            cnt = hi - lo
-            new = ~done & (cnt > 0)
-            found[new] = np.where(cnt[new] == 1, lo[new], -2)
-            dist[new] = g
-            done |= new
-        return found, dist
-
-    nxt, _ = first_neighbour(+1)
-    prv, _ = first_neighbour(-1)
-    has = nxt >= 0
-    src = idx[has]
-    dst = nxt[has]
-    mutual = prv[dst] == src
-    src, dst = src[mutual], dst[mutual]
-    graph = coo_matrix((np.ones(src.size, np.int8), (src, dst)), shape=(n, n))
-    _, comp = connected_components(graph, directed=True, connection="weak")
-    size = np.bincount(comp)
+    comp, size, sum_u = _chains(key, us, span, float(max_du), max_g)
     keep = size >= min_length
-    mean_u = np.bincount(comp, weights=us) / size
+    mean_u = sum_u / size
     kept = np.flatnonzero(keep)
     new_id = np.full(size.size, -1, np.int64)
     new_id[kept[np.argsort(mean_u[kept], kind="stable")]] = np.arange(kept.size)
     labels = np.empty(n, np.int64)
     labels[order] = new_id[comp]
     return labels
+
+
+@njit(cache=True)
+def _first_neighbour(key, span, max_du, max_g, sign):
+    """Per point of the sorted ``key`` (K,): index of the unique point within ``max_du * g``
+    px of its column in the first row g = 1 .. ``max_g`` away (``sign`` +1 below, -1 above)
+    that has any, -1 if none, -2 if ambiguous. The windows move monotonically with the key,
+    so two pointers per g replace the binary searches (the same comparisons)."""
+    n = key.size
+    found = np.full(n, -1, np.int64)
+    for g in range(1, max_g + 1):
+        tol = max_du * g
+        shift = float(sign * g) * span
+        lo = 0
+        hi = 0
+        for i in range(n):
+            centre = key[i] + shift
+            a = centre - tol
+            b = centre + tol
+            while lo < n and key[lo] < a:  # searchsorted(key, a, "left")
+                lo += 1
+            if hi < lo:
+                hi = lo
+            while hi < n and key[hi] <= b:  # searchsorted(key, b, "right")
+                hi += 1
+            if found[i] == -1 and hi > lo:
+                found[i] = lo if hi - lo == 1 else -2
+    return found
+
+
+@njit(cache=True)
+def _chains(key, us, span, max_du, max_g):
+    """Chain the points of the sorted ``key`` (K,): a point and the first candidate below it
+    are linked where each is the other's unique candidate (:func:`link_segments`). Returns
+    each point's chain (K,) int64, numbered in the order of the chains' first points, and
+    each chain's size and sum of ``us`` (summed in point order)."""
+    n = key.size
+    nxt = _first_neighbour(key, span, max_du, max_g, 1)
+    prv = _first_neighbour(key, span, max_du, max_g, -1)
+    comp = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):  # a link goes to a later row: the predecessor has a lower index
+        p = prv[i]
+        if p >= 0 and nxt[p] == i:
+            comp[i] = comp[p]
+        else:
+            comp[i] = m
+            m += 1
+    size = np.zeros(m, np.int64)
+    sum_u = np.zeros(m, np.float64)
+    for i in range(n):
+        size[comp[i]] += 1
+        sum_u[comp[i]] += us[i]
+    return comp, size, sum_u
 
 
 def _empty_extraction(shape: tuple[int, int], noise: float, sw: float, ds: float) -> SlitExtraction:
@@ -245,7 +275,9 @@ def extract_slits(
     SlitExtractionError
         invalid image (not 2-D, empty, NaN/inf, bad dtype) or parameters.
     """
-    img = as_image(image, channel=channel)
+    # one contiguous plane: OpenCV and the compiled kernels read rows (a colour image's plane
+    # is a strided view)
+    img = np.ascontiguousarray(as_image(image, channel=channel))
     background = "opening" if reject_texture else "median"
     if method not in CENTRE_METHODS:
         raise SlitExtractionError(f"method must be one of {CENTRE_METHODS}, got {method!r}")
@@ -263,11 +295,15 @@ def extract_slits(
                 img.shape, estimate_noise(img), math.nan, ds if ds is not None else math.nan
             )
         sw = est
+    bg = None
     if ds is None:
-        hp0 = cv2.subtract(img, background_validated(img, sw, background))
-        ds = estimate_dot_size(hp0) or sw  # dots from the same optics: fall back to the stripe
-    hp, slits, sat, noise = separate_validated(img, sw, ds, saturation_level, background)
-    dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(np.float32)
+        bg = background_validated(img, sw, background)
+        # dots from the same optics: fall back to the stripe
+        ds = estimate_dot_size(cv2.subtract(img, bg)) or sw
+    hp, slits, sat, noise = separate_validated(img, sw, ds, saturation_level, background, bg)
+    dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(
+        np.float32, copy=False
+    )
     centres = find_centres_validated(
         slits, k_sigma * noise, method, sat, sw, smoothing_taps(v_smooth), reject_texture
     )

@@ -144,9 +144,13 @@ def _running_extreme(x: NDArray, length: int, op: str) -> NDArray:
 
 
 def vertical_opening(x: NDArray, length: int) -> NDArray:
-    """Grey opening with a vertical line of odd ``length`` px (erosion then dilation)."""
+    """Grey opening with a vertical line of odd ``length`` px (erosion then dilation);
+    out-of-image samples are ignored. OpenCV's opening with a (length, 1) rectangle for the
+    types it takes (min and max are exact: the same values as :func:`_running_extreme`)."""
     if length <= 1:
         return x.copy()
+    if x.dtype in (np.uint8, np.uint16, np.float32, np.float64):
+        return cv2.morphologyEx(x, cv2.MORPH_OPEN, np.ones((int(length), 1), np.uint8))
     return _running_extreme(_running_extreme(x, length, "min"), length, "max")
 
 
@@ -181,8 +185,8 @@ def remove_streaks(
     out = None
     for a in angles_deg:
         o = cv2.morphologyEx(dots, cv2.MORPH_OPEN, line_kernel(length, a))
-        out = o if out is None else cv2.max(out, o)
-    return cv2.subtract(dots, out)
+        out = o if out is None else cv2.max(out, o, dst=out)
+    return cv2.subtract(dots, out, dst=out)
 
 
 #: A float image is taken to resolve at most this many levels over its range (12 bits): the
@@ -282,17 +286,137 @@ def slope_sigma(length: int) -> float:
     return 0.5 * length
 
 
+def _structure_tensor(hp: NDArray, sigma: float) -> tuple[F32, F32]:
+    """J_uu and J_uv of :func:`stripe_slope`: the products gu^2, gu gv of the Sobel
+    derivatives of ``hp`` (uint8, uint16 or float32) integrated over a Gaussian of ``sigma``
+    px, (H, W) float32 each."""
+    # Sobel straight from integer data: its sums are integers below 2^24, exact in float32
+    gu = cv2.Sobel(hp, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(hp, cv2.CV_32F, 0, 1, ksize=3)
+    juv = cv2.GaussianBlur(cv2.multiply(gu, gv, dst=gv), (0, 0), sigma)
+    juu = cv2.GaussianBlur(cv2.multiply(gu, gu, dst=gu), (0, 0), sigma)
+    return juu, juv
+
+
 def stripe_slope(hp: NDArray, sigma: float) -> NDArray[np.float32]:
     """(H, W) float32, px per row: the local lean of the stripes, du/dv, from the structure
     tensor of ``hp`` integrated over a Gaussian of ``sigma`` px (a stripe f(u - s v) has
     gradients (f', -s f'), so s = -J_uv / J_uu); clipped to +-1."""
-    x = hp.astype(np.float32)
-    gu = cv2.Sobel(x, cv2.CV_32F, 1, 0, ksize=3)
-    gv = cv2.Sobel(x, cv2.CV_32F, 0, 1, ksize=3)
-    juu = cv2.GaussianBlur(gu * gu, (0, 0), sigma)
-    juv = cv2.GaussianBlur(gu * gv, (0, 0), sigma)
+    x = hp if hp.dtype in (np.uint8, np.uint16, np.float32) else hp.astype(np.float32)
+    juu, juv = _structure_tensor(x, sigma)
     s = -juv / np.maximum(juu, 1e-6)
     return np.clip(s, -1.0, 1.0)
+
+
+@njit(cache=True)
+def _row_interp(row: NDArray, u: float) -> np.float32:
+    """``row`` (W,) interpolated linearly at column ``u`` (clamped to the row), in float32."""
+    w = row.size
+    u = min(max(u, 0.0), w - 1.0)
+    u0 = min(int(u), w - 2) if w > 1 else 0  # u >= 0: int() is the floor
+    f = np.float32(u - u0)
+    a = np.float32(row[u0])
+    b = np.float32(row[min(u0 + 1, w - 1)])
+    return np.float32(a + np.float32(np.float32(b - a) * f))
+
+
+@njit(cache=True, inline="always")
+def _fill_run(hp, opened, slope_a, slope_b, mode, rint, out, start, stop, c, lim):
+    """:func:`fill_dots` for the run of mask pixels ``start`` .. ``stop - 1`` of column ``c``
+    (``mode``: 0 no slope, 1 ``slope_a`` is the slope image, 2 ``slope_a``, ``slope_b`` are
+    J_uu, J_uv of :func:`_structure_tensor`; ``rint``: round, for integer images)."""
+    h = hp.shape[0]
+    n = stop - start
+    if start == 0 or stop == h or n > lim:  # the opening, as the fallback
+        for q in range(start, stop):
+            out[q, c] = opened[q, c]
+        return
+    den = float(np.float32(n + 1))
+    if mode == 0:  # straight above and below
+        above = np.float32(hp[start - 1, c])
+        below = np.float32(hp[stop, c])
+        for t in range(1, n + 1):
+            val = float(above) + float(np.float32(below - above)) * (t / den)
+            if rint:
+                val = np.rint(val)
+            out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+        return
+    mid = start + n // 2
+    if mode == 1:
+        s = float(np.float32(slope_a[mid, c]))
+    else:
+        sf = np.float32(-slope_b[mid, c] / max(slope_a[mid, c], np.float32(1e-6)))
+        s = float(min(max(sf, np.float32(-1.0)), np.float32(1.0)))
+    # along the stripe: the clean pixels t rows above and n + 1 - t rows below, shifted
+    # sideways by the local slope (linear interpolation along their rows)
+    row_a = hp[start - 1]
+    row_b = hp[stop]
+    for t in range(1, n + 1):
+        above = _row_interp(row_a, float(c) - s * t)
+        below = _row_interp(row_b, float(c) + s * (n + 1 - t))
+        val = float(above) + float(np.float32(below - above)) * (t / den)
+        if rint:
+            val = np.rint(val)
+        out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+
+
+@njit(cache=True)
+def _fill_runs(hp, opened, mask, words, slope_a, slope_b, mode, rint, out, length):
+    """:func:`fill_dots`'s refill of every vertical run of ``mask`` pixels in ``out`` (a copy
+    of ``hp``), one row-major pass over the mask (see :func:`_fill_run`). ``words`` (H, W / 8)
+    uint64 is ``mask`` read 8 pixels at a time ((H, 0) if W is not a multiple of 8): blocks of
+    8 columns where a row's mask equals the one above hold no run start or end."""
+    h, w = hp.shape
+    nw = words.shape[1]
+    start = np.full(w, -1, np.intp)
+    zero = np.uint64(0)
+    for r in range(h + 1):
+        c0 = 0
+        while c0 < w:
+            c1 = min(c0 + 8, w)
+            k = c0 // 8
+            if k < nw:
+                above = words[r - 1, k] if r > 0 else zero
+                here = words[r, k] if r < h else zero
+                if above == here:
+                    c0 = c1
+                    continue
+            for c in range(c0, c1):
+                cur = r < h and mask[r, c] != 0
+                prev = r > 0 and mask[r - 1, c] != 0
+                if cur and not prev:
+                    start[c] = r
+                elif prev and not cur:
+                    _fill_run(
+                        hp, opened, slope_a, slope_b, mode, rint, out, start[c], r, c, 2 * length
+                    )
+            c0 = c1
+
+
+def _dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
+    """(H, W) uint8, 255 on the dot pixels :func:`fill_dots` refills."""
+    diff = cv2.subtract(hp, opened)
+    # + 5 % of the opening: the opening flattens the top of a tilted stripe by
+    # A (1 - exp(-(s (L - 1) / 2)^2 / (2 sigma^2))), ~2.5 % of its peak A at slope s = 0.1; that
+    # is not a dot, and flagging whole stripe tops would make runs too long to interpolate
+    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau)
+    mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=diff if diff.dtype == np.uint8 else None)
+    return cv2.dilate(mask, np.ones((3, 3), np.uint8))
+
+
+def _fill(hp: NDArray, opened: NDArray, tau: float, length: int, mode: int, a, b) -> NDArray:
+    """:func:`fill_dots` with the slope given by ``mode`` and ``a``, ``b`` (see
+    :func:`_fill_run`)."""
+    out = hp.copy()
+    mask = _dot_mask(hp, opened, tau)
+    rint = bool(np.issubdtype(hp.dtype, np.integer))
+    h, w = mask.shape
+    words = mask.view(np.uint64) if w % 8 == 0 else np.zeros((h, 0), np.uint64)
+    _fill_runs(hp, opened, mask, words, a, b, mode, rint, out, int(length))
+    return out
+
+
+_NO_SLOPE = np.zeros((1, 1), np.float32)
 
 
 def fill_dots(
@@ -315,60 +439,24 @@ def fill_dots(
     leaning stripe the speckle peaks along it are flagged too, and vertical interpolation would
     cut its core out).
     Runs longer than 2 ``length`` or touching the image border keep the opened value.
-    The result is clipped to ``hp`` so that ``hp - slits >= 0``.
+    The result is clipped to ``hp`` so that ``hp - slits >= 0``. One compiled pass over the
+    dot mask.
+
+    Parameters
+    ----------
+    hp : (H, W) highpass image, uint8, uint16 or float32
+    opened : (H, W) its vertical opening (:func:`vertical_opening`), same dtype
+    tau : dot threshold above the opening (intensity units)
+    length : the opening's line length (px)
+    slope : (H, W) stripe slope (px per row, :func:`stripe_slope`) or None
+
+    Returns
+    -------
+    (H, W) slit image, dtype of ``hp``
     """
-    h, w = hp.shape
-    diff = cv2.subtract(hp, opened)
-    # + 5 % of the opening: the opening flattens the top of a tilted stripe by
-    # A (1 - exp(-(s (L - 1) / 2)^2 / (2 sigma^2))), ~2.5 % of its peak A at slope s = 0.1; that
-    # is not a dot, and flagging whole stripe tops would make runs too long to interpolate
-    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau)
-    mask = cv2.compare(diff, thr, cv2.CMP_GT)
-    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
-    out = hp.copy()
-    if not mask.any():
-        return out
-    mt = np.zeros((w, h + 2), np.int8)
-    mt[:, 1:-1] = cv2.transpose(mask) != 0
-    d = np.diff(mt, axis=1)
-    col, start, stop = mask_runs(d)
-    n = stop - start
-    ok = (start > 0) & (stop < h) & (n <= 2 * length)
-    # fallback for every masked pixel: the opening
-    np.copyto(out, opened, where=mask != 0)
-    col, start, stop, n = col[ok], start[ok], stop[ok], n[ok]
-    if n.size == 0:
-        return out
-    run = np.repeat(np.arange(n.size), n)
-    t = np.arange(run.size) - np.repeat(np.cumsum(n) - n, n) + 1  # 1..n within each run
-    frac = t / (n[run] + 1).astype(np.float32)
-    rows = start[run] + t - 1
-    cols = col[run]
     if slope is None:
-        above = hp[start - 1, col].astype(np.float32)[run]
-        below = hp[stop, col].astype(np.float32)[run]
-    else:
-        # along the stripe: the clean pixels t rows above and n + 1 - t rows below, shifted
-        # sideways by the local slope (linear interpolation along their rows)
-        s = slope[start + n // 2, col].astype(np.float32)[run]
-        above = _row_sample(hp, start[run] - 1, cols - s * t)
-        below = _row_sample(hp, stop[run], cols + s * (n[run] + 1 - t))
-    val = above + (below - above) * frac
-    if np.issubdtype(hp.dtype, np.integer):
-        val = np.rint(val)
-    out[rows, cols] = np.minimum(val, hp[rows, cols]).astype(hp.dtype)
-    return out
-
-
-def _row_sample(img: NDArray, r: NDArray, u: NDArray) -> NDArray[np.float32]:
-    """Linear interpolation of ``img`` along rows ``r`` at (fractional) columns ``u``."""
-    w = img.shape[1]
-    u = np.clip(u, 0.0, w - 1.0)
-    u0 = np.minimum(np.floor(u).astype(np.intp), w - 2) if w > 1 else np.zeros(u.shape, np.intp)
-    f = (u - u0).astype(np.float32)
-    a = img[r, u0].astype(np.float32)
-    b = img[r, np.minimum(u0 + 1, w - 1)].astype(np.float32)
-    return a + (b - a) * f
+        return _fill(hp, opened, tau, length, 0, _NO_SLOPE, _NO_SLOPE)
+    return _fill(hp, opened, tau, length, 1, np.asarray(slope, np.float32), _NO_SLOPE)
 
 
 #: Background estimators of :func:`separate`; the first is the default.
@@ -404,12 +492,15 @@ def separate_validated(
     dot_size_px: float,
     saturation_level: float | None,
     background: str = "median",
+    bg: NDArray | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, float]:
     """Core of :func:`separate` on a validated image, native dtype (exact integer arithmetic).
 
+    ``bg``: the row background (:func:`background_validated`) if already made.
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
-    bg = background_validated(img, stripe_width_px, background)
+    if bg is None:
+        bg = background_validated(img, stripe_width_px, background)
     hp = cv2.subtract(img, bg)  # saturates at 0 for integer images
     if hp.dtype == np.float32:
         np.maximum(hp, 0, out=hp)
@@ -419,7 +510,8 @@ def separate_validated(
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)
-    slits = fill_dots(hp, opened, 3.0 * noise, length, stripe_slope(hp, slope_sigma(length)))
+    juu, juv = _structure_tensor(hp, slope_sigma(length))
+    slits = _fill(hp, opened, 3.0 * noise, length, 2, juu, juv)
     level = _saturation_level(img, saturation_level)
     if level is None:
         sat = np.zeros(img.shape, bool)
@@ -428,6 +520,22 @@ def separate_validated(
         # keep saturated runs that are stripes (vertically long), not saturated dots
         sat = vertical_opening(sat, length).view(bool)
     return hp, slits, sat, noise
+
+
+@njit(cache=True)
+def _pair_diff_histogram(img, levels):
+    """Histogram (``levels``,) int64 of |img[2 i + 1] - img[2 i]| over rows pairs (i) and
+    columns of an integer image."""
+    h, w = img.shape
+    counts = np.zeros(levels, np.int64)
+    for i in range(h // 2):
+        a = img[2 * i]
+        b = img[2 * i + 1]
+        for c in range(w):
+            x = int(a[c])
+            y = int(b[c])
+            counts[x - y if x >= y else y - x] += 1
+    return counts
 
 
 def noise_from_difference(img: NDArray) -> float:
@@ -444,9 +552,8 @@ def noise_from_difference(img: NDArray) -> float:
     """
     if img.dtype in (np.uint8, np.uint16) and img.shape[0] >= 2:
         # integer data: the median from the histogram of the differences (no sort)
-        d = cv2.absdiff(img[1::2], img[:-1:2])
-        cum = np.cumsum(np.bincount(d.ravel()))
-        n = d.size
+        cum = np.cumsum(_pair_diff_histogram(img, int(np.iinfo(img.dtype).max) + 1))
+        n = (img.shape[0] // 2) * img.shape[1]
         hi = int(np.searchsorted(cum, n // 2 + 1))  # the (n // 2)-th smallest (0-based)
         med = hi if n % 2 else 0.5 * (int(np.searchsorted(cum, n // 2)) + hi)
     else:
@@ -496,17 +603,20 @@ def separate(
     SlitExtractionError
         bad image or sizes, or no stripe to estimate the width from.
     """
-    img = as_image(image, channel=channel)
+    # one contiguous plane: OpenCV and the compiled kernels read rows (a colour image's plane
+    # is a strided view)
+    img = np.ascontiguousarray(as_image(image, channel=channel))
     if background not in BACKGROUNDS:
         raise SlitExtractionError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     sw = positive_px(stripe_width_px, "stripe_width_px")
     ds = positive_px(dot_size_px, "dot_size_px")
     if sw is None:
         sw = estimate_stripe_width(img)
+    bg = None
     if ds is None:
-        hp0 = cv2.subtract(img, background_validated(img, sw, background))
-        ds = estimate_dot_size(hp0) or sw
-    hp, slits, sat, _ = separate_validated(img, sw, ds, saturation_level, background)
+        bg = background_validated(img, sw, background)
+        ds = estimate_dot_size(cv2.subtract(img, bg)) or sw
+    hp, slits, sat, _ = separate_validated(img, sw, ds, saturation_level, background, bg)
     hpf = hp.astype(np.float32)
     sf = slits.astype(np.float32)
     return Separation(

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.validation import SlitExtractionError, as_image
@@ -45,15 +47,39 @@ _SCALES = 0.6 * 1.25 ** np.arange(12)
 _WIDTH_DISAGREEMENT = 1.5
 
 
+@functools.lru_cache(maxsize=64)
 def _d2_kernel(sigma: float) -> NDArray[np.float32]:
-    """Sampled second derivative of a unit-area Gaussian (zero sum, exact on x^2 / 2)."""
+    """Sampled second derivative of a unit-area Gaussian (zero sum, exact on x^2 / 2); one
+    read-only array per ``sigma`` (cached)."""
     r = max(2, math.ceil(4 * sigma))
     x = np.arange(-r, r + 1, dtype=np.float64)
     g = np.exp(-0.5 * (x / sigma) ** 2)
     k = g * (x * x - sigma * sigma)
     k -= k.mean()  # no response to a constant
     k /= 0.5 * np.sum(k * x * x)  # response exactly 1 to x^2 / 2
-    return k.astype(np.float32)
+    k = k.astype(np.float32)
+    k.flags.writeable = False
+    return k
+
+
+@njit(cache=True)
+def _best_scale(resp):
+    """For responses (S, R, N): the first scale of the largest response at each point
+    (``resp.argmax(axis=0)``, (R, N) intp), that response ((R, N) float32) and the largest
+    absolute response over all, in one compiled pass."""
+    n_scales, nr, nc = resp.shape
+    best = np.zeros((nr, nc), np.intp)
+    strength = resp[0].copy()
+    peak = 0.0
+    for i in range(n_scales):
+        for r in range(nr):
+            for c in range(nc):
+                x = resp[i, r, c]
+                peak = max(peak, abs(float(x)))
+                if x > strength[r, c]:
+                    strength[r, c] = x
+                    best[r, c] = i
+    return best, strength, peak
 
 
 def _ridge_fwhm(
@@ -84,9 +110,8 @@ def _ridge_fwhm(
     noise = np.array(
         [pixel_noise * s**1.5 * float(np.linalg.norm(_d2_kernel(float(s)))) for s in _SCALES]
     )
-    noise = np.maximum(noise, 1e-6 * max(float(np.abs(resp).max()), 1e-30))
-    best = resp.argmax(axis=0)
-    strength = np.take_along_axis(resp, best[None], 0)[0]
+    best, strength, peak = _best_scale(resp)
+    noise = np.maximum(noise, 1e-6 * max(peak, 1e-30))
     z = strength / noise[best]
     mid = strength[:, 1:-1]
     is_max = (mid > strength[:, :-2]) & (mid >= strength[:, 2:]) & (z[:, 1:-1] > z_min)
@@ -132,6 +157,27 @@ def _ridge_fwhm(
 MIN_RIDGE_CONTRAST = 0.5
 
 
+@njit(cache=True)
+def _brighter_side(profiles, r, c, d0, d1, reach):
+    """(K,) float64 for :func:`ridge_contrast`: the larger of the two sides' lowest values
+    ``d0`` .. ``d1`` px beyond the flat top's ends (``c`` -+ ``reach``), a side outside the
+    image not counting; 0 where neither side is inside."""
+    n = profiles.shape[1]
+    out = np.empty(r.size, np.float64)
+    for k in range(r.size):
+        hi = -np.inf
+        for sign in (-1, 1):
+            side = np.inf
+            for o in range(d0[k], d1[k] + 1):
+                col = c[k] + sign * reach[k] + sign * o
+                if 0 <= col <= n - 1:
+                    side = min(side, float(profiles[r[k], col]))
+            if side != np.inf:
+                hi = max(hi, side)
+        out[k] = 0.0 if hi == -np.inf else hi
+    return out
+
+
 def ridge_contrast(
     profiles: NDArray,
     r: NDArray[np.intp],
@@ -162,18 +208,16 @@ def ridge_contrast(
     fw = np.broadcast_to(np.asarray(fwhm_px, np.float64), r.shape)
     d0 = np.maximum(1, np.ceil(fw)).astype(np.intp)
     d1 = np.maximum(d0 + 1, np.ceil(2.0 * fw).astype(np.intp))
-    off = np.arange(int(d1.max(initial=2)) + 1)
     reach = np.rint(np.broadcast_to(np.asarray(reach_px, np.float64), r.shape)).astype(np.intp)
-    use = (off[None, :] >= d0[:, None]) & (off[None, :] <= d1[:, None])
     peak = profiles[r, np.clip(c, 0, n - 1)].astype(np.float64)
-    hi = np.full(r.shape, -np.inf)
-    for sign in (-1, 1):
-        cols = (c + sign * reach)[:, None] + sign * off[None, :]
-        inside = use & (cols >= 0) & (cols <= n - 1)
-        vals = profiles[r[:, None], np.clip(cols, 0, n - 1)].astype(np.float64)
-        side = np.where(inside, vals, np.inf).min(axis=1)
-        hi = np.maximum(hi, np.where(np.isinf(side), -np.inf, side))
-    hi = np.where(np.isinf(hi), 0.0, hi)  # no side inside the image
+    hi = _brighter_side(
+        profiles,
+        np.ascontiguousarray(r, np.intp),
+        np.ascontiguousarray(c, np.intp),
+        np.ascontiguousarray(d0),
+        np.ascontiguousarray(d1),
+        np.ascontiguousarray(reach),
+    )
     return np.where(peak > 0, (peak - hi) / np.where(peak > 0, peak, 1.0), 0.0)
 
 
