@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_speed import _ONE_THREAD, median_blur_s  # noqa: E402
+from bench_speed import median_blur_s, on_one_thread  # noqa: E402
 from results import command_line, write_section  # noqa: E402
 
 from multislit.identify import identify, prepare_reference  # noqa: E402
@@ -199,10 +199,7 @@ def report(r: dict) -> str:
 
 
 def main() -> None:
-    if any(os.environ.get(k) != "1" for k in _ONE_THREAD):
-        # the BLAS reads its thread count when NumPy is loaded: start again with one thread
-        os.environ.update(dict.fromkeys(_ONE_THREAD, "1"))
-        os.execv(sys.executable, [sys.executable, *sys.argv])
+    on_one_thread()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=30, help="frames (default 30)")
     ap.add_argument(

@@ -170,11 +170,16 @@ def table(rows: list[dict], preps: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
+def on_one_thread() -> None:
+    """Run this benchmark with the BLAS and Numba on one thread: they read their thread count
+    when they load, so the process starts again with the variables set (once)."""
     if any(os.environ.get(k) != "1" for k in _ONE_THREAD):
-        # the BLAS reads its thread count when NumPy is loaded: start again with one thread
         os.environ.update(dict.fromkeys(_ONE_THREAD, "1"))
         os.execv(sys.executable, [sys.executable, *sys.argv])
+
+
+def main() -> None:
+    on_one_thread()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--slits", type=int, nargs="+", default=[25, 49], help="rigs to time (default 25 49)"

@@ -16,6 +16,20 @@ F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
 
+def _corners_inside(
+    centres: F64, half_w: int, half_h: int, shape: tuple[int, int]
+) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """Each patch's top-left corner (x, y), px, and whether its bilinear cells (the patch and
+    one pixel more to the right and below) lie inside an image of ``shape`` (H, W)."""
+    h, w = shape
+    x = centres[:, 0] - half_w
+    y = centres[:, 1] - half_h
+    with np.errstate(invalid="ignore"):
+        inside = (x >= 0) & (np.floor(x) + 2 * half_w + 1 < w)
+        inside &= (y >= 0) & (np.floor(y) + 2 * half_h + 1 < h)
+    return x, y, inside
+
+
 def sample_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
     """Bilinear patches of ``image`` around sub-pixel centres.
 
@@ -37,10 +51,7 @@ def sample_patches(image: F32, centres: F64, half_w: int, half_h: int) -> F32:
     h, w = image.shape
     out = np.empty((m, ph, pw), np.float32)
     # patches whose pixel cells lie inside the image: integer windows blended in NumPy
-    x = centres[:, 0] - half_w
-    y = centres[:, 1] - half_h
-    with np.errstate(invalid="ignore"):
-        inside = (x >= 0) & (np.floor(x) + pw < w) & (y >= 0) & (np.floor(y) + ph < h)
+    x, y, inside = _corners_inside(centres, half_w, half_h, (h, w))
     idx = np.flatnonzero(inside)
     if idx.size:
         x0 = np.floor(x[idx]).astype(np.intp)
@@ -102,10 +113,7 @@ def sample_patch_columns(
     if m == 0:
         return out, s1, s2
     centres = np.asarray(centres, dtype=np.float64)
-    x = centres[:, 0] - half_w
-    y = centres[:, 1] - half_h
-    with np.errstate(invalid="ignore"):
-        inside = (x >= 0) & (np.floor(x) + pw < w) & (y >= 0) & (np.floor(y) + ph < h)
+    x, y, inside = _corners_inside(centres, half_w, half_h, (h, w))
     idx = np.flatnonzero(inside)
     if idx.size:
         # the same float32 blends as sample_patches: along u first, then along v
