@@ -121,22 +121,26 @@ def test_wrong_image_size_is_an_error(scenes_reference):
 def _straightforward_scores(ref, scan_dots, pu, pv, p, allowed=None, row_shift=None):
     """The candidate scores computed the plain way: every reference patch sampled, normalised
     and dotted with the template (what the fast scoring must reproduce); a template whose rows
-    are shifted is put together row by row from upright patches."""
+    are shifted is put together row by row from upright patches, each row moved along the dot
+    projector's epipolar line (its vertical motion per px sideways at most 1)."""
     R, N = ref.curves.shape[:2]
     w, h = ref.image_size
     hw, hh = p.template_size(ref)
     uv = np.c_[pu, pv]
     M = len(uv)
+    lines = ref.epipolar_lines(uv)
+    direction = np.c_[lines[:, 1], -lines[:, 0]]
     if row_shift is None:
         tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))
     else:
+        rise = np.clip(direction[:, 1] / direction[:, 0], -1.0, 1.0)
         rows = [
-            sample_patches(scan_dots, uv + np.c_[row_shift[:, j], np.zeros(M)], hw, hh)[:, j]
+            sample_patches(scan_dots, uv + row_shift[:, j, None] * np.c_[np.ones(M), rise], hw, hh)[
+                :, j
+            ]
             for j in range(2 * hh + 1)
         ]
         tmpl = normalise_patches(np.stack(rows, axis=1))
-    lines = ref.epipolar_lines(uv)
-    direction = np.c_[lines[:, 1], -lines[:, 0]]
     uu_all = np.full((R, M, N), np.nan)
     vv_all = np.full((R, M, N), np.nan)
     for r in range(R):
