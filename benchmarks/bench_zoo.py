@@ -11,6 +11,7 @@ Seeds: 0-99 are tuning seeds (look at them while developing); 1000 and above are
 (report on them, never tune on them). ``--held-out`` runs seeds 1000, 1001, ...
 
 Run:  .venv/bin/python benchmarks/bench_zoo.py [--seeds 0 1 2] [--held-out] [--size 640 512]
+      [--option NAME=VALUE ...]  (an identification mode to compare, not written)
 """
 
 from __future__ import annotations
@@ -24,7 +25,9 @@ import numpy as np
 from results import command_line, write_section
 
 from multislit.calibrate import calibrate_capture
-from multislit.identify import identify, prepare_reference
+from multislit.identify import prepare_reference
+from multislit.identify.labelling import _identify
+from multislit.identify.matching import _Options
 from multislit.io import Capture
 from multislit.sim import coverage_losses, object_metrics, simulate_zoo_capture
 
@@ -57,7 +60,9 @@ def _rig_summary(cap: Capture) -> str:
     )
 
 
-def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> list[str]:
+def run_seed(
+    seed: int, folder: Path, size: tuple[int, int], scenes: int, options: _Options
+) -> list[str]:
     """Simulate, calibrate and identify one zoo seed; print its lines and return them."""
     cap = Capture.open(simulate_zoo_capture(folder, seed, scenes=scenes, max_size=size))
     lines = [f"Seed {seed}: {_rig_summary(cap)}; calibration {_calibrate(cap)}.", ""]
@@ -72,7 +77,7 @@ def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> lis
     for p in cap.scans:
         img = cap.image(p)
         t = time.perf_counter()
-        ident = identify(img, ref)
+        ident = _identify(img, ref, None, options)
         dt = time.perf_counter() - t
         truth = np.load(cap.root / "truth" / f"{p.stem}.npz")
         m = object_metrics(ident, truth["slit"], truth["object"])
@@ -88,6 +93,24 @@ def run_seed(seed: int, folder: Path, size: tuple[int, int], scenes: int) -> lis
         )
         print(lines[-1])
     return lines + [""]
+
+
+def _parse_options(ap: argparse.ArgumentParser, pairs: list[str]) -> _Options:
+    """``_Options`` with the ``NAME=VALUE`` pairs set (values of the field's type)."""
+    fields = _Options.__dataclass_fields__
+    kw = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep or name not in fields:
+            ap.error(f"--option must be NAME=VALUE with NAME one of {sorted(fields)}, got {pair!r}")
+        kind = type(getattr(_Options(), name))
+        try:
+            kw[name] = (
+                value if kind is str else (value.lower() == "true" if kind is bool else kind(value))
+            )
+        except ValueError:
+            ap.error(f"--option {name} needs a {kind.__name__}, got {value!r}")
+    return _Options(**kw)
 
 
 def main() -> None:
@@ -117,13 +140,27 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=2, help="scenes per seed")
     ap.add_argument("--keep", type=Path, default=None, help="write the captures here")
     ap.add_argument(
+        "--option",
+        action="append",
+        metavar="NAME=VALUE",
+        help="an identification mode to compare (repeatable), a field of "
+        "multislit.identify.matching._Options, e.g. template_half_width=1.0, search_px=2, "
+        "references=all, depth_margin=0.25",
+    )
+    ap.add_argument(
         "--write", action="store_true", help="record the tables in benchmarks/RESULTS.md"
     )
     args = ap.parse_args()
+    options = _parse_options(ap, args.option or [])
+    if args.option and args.write:
+        ap.error("--write records the library's own identification: leave out --option")
     seeds = (
         list(range(HELD_OUT_START, HELD_OUT_START + args.held_out)) if args.held_out else args.seeds
     )
-    print(f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px")
+    print(
+        f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px"
+        + (f", options {', '.join(args.option)}" if args.option else "")
+    )
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
         lines = [
@@ -133,7 +170,7 @@ def main() -> None:
             "",
         ]
         for seed in seeds:
-            lines += run_seed(seed, root / f"zoo_{seed}", tuple(args.size), args.scenes)
+            lines += run_seed(seed, root / f"zoo_{seed}", tuple(args.size), args.scenes, options)
     if args.write:
         kind = "held_out" if args.held_out else "tuning"
         write_section(
