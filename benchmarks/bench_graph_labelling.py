@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from multislit.identify import Identification, identify, prepare_reference
-from multislit.identify.labelling import _BORDER_CUT, _SAMPLE_STEP, _sample_scores
+from multislit.identify.labelling import _sample_scores, _sampled_segments
 from multislit.identify.matching import _Options
-from multislit.identify.segments import band_samples, near_segment_ends, split_at_brightness_steps
+from multislit.identify.segments import near_segment_ends
 from multislit.io import Capture
 from multislit.sim import object_metrics
 from multislit.stripes import as_image, extract_slits
@@ -228,11 +228,7 @@ def graph_identify(img, ref, margin_min):
     p = _Options()
     img = as_image(img)
     ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
-    seg = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
-    step = max(2.0, _SAMPLE_STEP * ref.spacing_px)
-    hh = p.template_size(ref)[1]
-    h = img.shape[0]
-    si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
+    seg, si, step, hh = _sampled_segments(ex, ref, p)
     scores = _sample_scores(ex, seg, si, ref, hh, p)
     k1, margin, pch, dist = label(ex, seg, si, scores, ref.spacing_px)
     K = len(ex.u)

@@ -30,19 +30,16 @@ import numpy as np
 
 from multislit.identify import Identification, identify, prepare_reference
 from multislit.identify.labelling import (
-    _BORDER_CUT,
     _MIN_SAMPLES,
     _MIN_SCORE,
-    _SAMPLE_STEP,
     _sample_scores,
+    _sampled_segments,
     _vouched_points,
 )
 from multislit.identify.matching import _Options
 from multislit.identify.order import OrderParams, row_runs
 from multislit.identify.reference import curve_u
 from multislit.identify.segments import (
-    band_samples,
-    split_at_brightness_steps,
     split_at_winner_changes,
 )
 from multislit.io import Capture
@@ -161,11 +158,7 @@ def group_labels(seg, si, scores, ex, ref):
 
 def prepare(img, ref, p):
     ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
-    seg = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
-    step = max(2.0, _SAMPLE_STEP * ref.spacing_px)
-    hh = p.template_size(ref)[1]
-    h = img.shape[0]
-    si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
+    seg, si, step, hh = _sampled_segments(ex, ref, p)
     scores = _sample_scores(ex, seg, si, ref, hh, p)
     seg = split_at_winner_changes(seg, ex.v, si, scores, _MIN_SCORE)
     return ex, seg, si, scores, max(step, hh), hh

@@ -278,10 +278,7 @@ def _identify(
             "no slits found in the image",
             ex,
         )
-    seg = split_at_brightness_steps(seg, ex.v, ex.peak)
-    step = max(2.0, _SAMPLE_STEP * reference.spacing_px)
-    hh = p.template_size(reference)[1]
-    si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
+    seg, si, step, hh = _sampled_segments(ex, reference, p)
     if previous is None:
         scores = _sample_scores(ex, seg, si, reference, hh, p)
     else:  # the previous frame's labels: checked, not searched (prior imports this module)
@@ -307,6 +304,27 @@ def _identify(
     return Identification(
         ex.u, ex.v, slit, conf, seg, ex.peak, ex.width, n_seg, n_id, dropped, "", ex
     )
+
+
+def _sampled_segments(
+    ex: SlitExtraction, reference: ReferenceSet, p: _Options
+) -> tuple[I64, NDArray[np.intp], float, int]:
+    """The extraction's segments split at brightness steps, and where they are sampled.
+
+    Returns
+    -------
+    seg : (K,) int64, segment id per point (-1: none)
+    si : (M,) intp, the sample points (every ``step`` rows of a segment, with templates
+        inside the image)
+    step : float, px, the sample spacing
+    hh : int, px, the template's half height
+    """
+    seg = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
+    step = max(2.0, _SAMPLE_STEP * reference.spacing_px)
+    hh = p.template_size(reference)[1]
+    h = reference.image_size[1]
+    si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
+    return seg, si, step, hh
 
 
 def _sample_scores(
