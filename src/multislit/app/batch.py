@@ -24,7 +24,7 @@ from multislit.app.stream import (
     FrameResult,
     FrameWriter,
     StreamSummary,
-    _positive,
+    check_frame_options,
     laser_channel,
     precompute_reference,
     run_frames,
@@ -124,11 +124,7 @@ def batch(
     MultislitError
         As :func:`~multislit.app.stream.stream`; a scheduler that cannot be reached; no Dask.
     """
-    _positive(workers, "workers")
-    _positive(every, "every")
-    _positive(max_frames, "max_frames", allow_none=True)
-    if on_bad_frame not in ("skip", "stop"):
-        raise MeasurementError(f"on_bad_frame must be 'skip' or 'stop', got {on_bad_frame!r}")
+    check_frame_options(workers, every, max_frames, on_bad_frame)
     distributed = _dask()
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)

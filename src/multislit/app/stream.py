@@ -434,6 +434,18 @@ def _positive(x: int | None, name: str, allow_none: bool = False) -> None:
         raise MeasurementError(f"{name} ({flag}) must be an integer >= 1, got {x!r}")
 
 
+def check_frame_options(
+    workers: int, every: int, max_frames: int | None, on_bad_frame: str
+) -> None:
+    """The checks of the options :func:`stream` and ``batch`` share (one line naming the
+    option, a :class:`~multislit.errors.MeasurementError`)."""
+    _positive(workers, "workers")
+    _positive(every, "every")
+    _positive(max_frames, "max_frames", allow_none=True)
+    if on_bad_frame not in ("skip", "stop"):
+        raise MeasurementError(f"on_bad_frame must be 'skip' or 'stop', got {on_bad_frame!r}")
+
+
 def stream(
     capture: str | os.PathLike[str] | Capture,
     source: str | os.PathLike[str],
@@ -485,15 +497,11 @@ def stream(
     MultislitError
         A bad capture, calibration, SOURCE, option or (with ``on_bad_frame='stop'``) frame.
     """
-    _positive(workers, "workers")
+    check_frame_options(workers, every, max_frames, on_bad_frame)
     if prior and workers != 1:
         raise MeasurementError(
             f"prior needs the frames in order in one process: use workers 1, not {workers}"
         )
-    _positive(every, "every")
-    _positive(max_frames, "max_frames", allow_none=True)
-    if on_bad_frame not in ("skip", "stop"):
-        raise MeasurementError(f"on_bad_frame must be 'skip' or 'stop', got {on_bad_frame!r}")
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)
     src = open_source(
