@@ -292,15 +292,10 @@ def cmd_stream(args: argparse.Namespace) -> int:
         args.source,
         args.output,
         workers=args.workers,
-        max_frames=args.max_frames,
-        every=args.every,
-        on_bad_frame=args.on_bad_frame,
-        channel=args.channel,
-        calibration=args.calibration,
         camera_features=_camera_features(args.pylon),
         prior=args.prior,
-        overwrite=args.overwrite,
         progress=ProgressLine("stream: "),
+        **_frame_settings(args),
     )
     print(f"wrote {s.frames} frame(s) to {s.out} ({s.skipped} skipped, {s.dropped} dropped)")
     return 0
@@ -316,13 +311,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
         args.output,
         address=args.dask,
         workers=args.workers,
-        max_frames=args.max_frames,
-        every=args.every,
-        on_bad_frame=args.on_bad_frame,
-        channel=args.channel,
-        calibration=args.calibration,
-        overwrite=args.overwrite,
         progress=ProgressLine("batch: "),
+        **_frame_settings(args),
     )
     print(f"wrote {s.frames} frame(s) to {s.out} ({s.skipped} skipped)")
     return 0
@@ -361,6 +351,18 @@ def _frame_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
     p.add_argument("--overwrite", action="store_true", help="replace frames already in OUT")
+
+
+def _frame_settings(args: argparse.Namespace) -> dict:
+    """The keyword arguments of ``stream`` and ``batch`` that :func:`_frame_options` reads."""
+    return {
+        "max_frames": args.max_frames,
+        "every": args.every,
+        "on_bad_frame": args.on_bad_frame,
+        "channel": args.channel,
+        "calibration": args.calibration,
+        "overwrite": args.overwrite,
+    }
 
 
 def _holes_from_ply_refused(ply: Path) -> str:
