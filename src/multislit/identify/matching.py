@@ -284,12 +284,15 @@ def _ncc_at(
 def _hypotheses(
     ref: ReferenceSet,
     uv: F64,
+    lines: F64,
     hw: int,
     hh: int,
     p: _Options,
     allowed: NDArray[np.bool_] | None,
 ) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
     """The reference patch centres each sample's hypotheses are compared at.
+
+    ``lines`` (M, 3) are the samples' epipolar lines (``ref.epipolar_lines(uv)``).
 
     Returns
     -------
@@ -303,7 +306,6 @@ def _hypotheses(
     R, N = ref.curves.shape[:2]
     M = len(uv)
     offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
-    lines = ref.epipolar_lines(uv)  # (M, 3), unit normal (a, b)
     direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
     uu_all, vv_all = _candidates(ref, uv, lines, hw, hh, p.depth_margin)  # (R, M, N)
     valid_any = np.isfinite(vv_all).any(axis=0)
@@ -334,12 +336,11 @@ def _hypotheses(
 _MAX_RISE = 1.0
 
 
-def _dot_rise(ref: ReferenceSet, uv: F64) -> F64:
-    """(M,) the vertical motion of the dots per px of sideways motion at each point: the slope
-    of the dot projector's epipolar line through it (a surface's depth change moves the slit
-    along the row but the dots along that line)."""
-    ln = ref.epipolar_lines(uv)  # unit normal (a, b): direction (b, -a)
-    dx, dy = ln[:, 1], -ln[:, 0]
+def _dot_rise(lines: F64) -> F64:
+    """(M,) the vertical motion of the dots per px of sideways motion on each epipolar line
+    (M, 3), unit normal (a, b): its slope (a surface's depth change moves the slit along the
+    row but the dots along that line)."""
+    dx, dy = lines[:, 1], -lines[:, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(np.abs(dx) > 1e-12, dy / dx, 0.0)
     return np.clip(t, -_MAX_RISE, _MAX_RISE)
@@ -382,7 +383,8 @@ def score_candidates(
         return scores
     sums = ref.window_sums(hw, hh)
     uv = np.c_[pu, pv]
-    cu, cv, rr, ok, valid_any = _hypotheses(ref, uv, hw, hh, p, allowed)
+    lines = ref.epipolar_lines(uv)  # (M, 3), unit normal (a, b)
+    cu, cv, rr, ok, valid_any = _hypotheses(ref, uv, lines, hw, hh, p, allowed)
     # a patch shifted off the image is zero-padded: sample it directly (rare)
     with np.errstate(invalid="ignore"):
         inside = (cu >= hw) & (cu <= w - 1 - hw) & (cv >= hh) & (cv <= h - 1 - hh)
@@ -393,7 +395,7 @@ def score_candidates(
         patches = sample_patches(scan_dots, uv, hw, hh)
     else:
         patches = sample_sheared_patches(
-            scan_dots, uv, hw, hh, row_shift, row_rise=row_shift * _dot_rise(ref, uv)[:, None]
+            scan_dots, uv, hw, hh, row_shift, row_rise=row_shift * _dot_rise(lines)[:, None]
         )
     tmpl = normalise_patches(patches)  # (M, K)
     rr_f = np.where(fast, rr, 0).reshape(M, -1)
