@@ -30,6 +30,7 @@ from multislit.identify.labelling import (
 )
 from multislit.identify.matching import _Options, score_candidates, template_row_shift
 from multislit.identify.reference import ReferenceSet
+from multislit.identify.segments import clear_winners
 from multislit.stripes import SlitExtraction
 
 F64 = NDArray[np.float64]
@@ -49,9 +50,6 @@ _OTHER = 0.05
 _CONFIRM = 0.5
 #: Hypotheses checked either side of the prior slit.
 _NEIGHBOURS = 1
-#: A sample clearly prefers a slit when its best NCC reaches ``_MIN_SCORE`` and leads the
-#: second best by this much (as the split of segments whose samples change winner).
-_LEAD = 0.1
 
 
 def check_previous(previous: object, reference: ReferenceSet) -> None:
@@ -165,7 +163,7 @@ def _strays(ss: I64, vs: F64, scores: F64, k: I64, reach: float) -> set[int]:
     """The segments some of whose checked samples clearly prefer another slit than their prior.
 
     A sample clearly prefers slit j when its best NCC (j's) reaches ``_MIN_SCORE`` and leads
-    the second best by ``_LEAD`` (as :func:`~.segments.split_at_winner_changes` takes it). A
+    the second best (:func:`~.segments.clear_winners`, as the full identification's split). A
     segment is sent back when two such samples in a row (of its clear samples, by row) prefer
     the same other slit (where the full identification would split the segment), or one does
     where the samples are thinned (``reach`` rows or more from a neighbouring sample: it may
@@ -179,10 +177,7 @@ def _strays(ss: I64, vs: F64, scores: F64, k: I64, reach: float) -> set[int]:
     k : (M,) int64, their segment's prior slit
     reach : px, the thinned samples' spacing
     """
-    S = np.where(np.isfinite(scores), scores, -1.0)
-    top2 = np.sort(S, axis=1)[:, -2:]
-    win = np.argmax(S, axis=1)
-    clear = (top2[:, 1] >= _MIN_SCORE) & (top2[:, 1] - top2[:, 0] >= _LEAD)
+    win, clear = clear_winners(scores, _MIN_SCORE)
     stray = clear & (win != k)
     out: set[int] = set()
     same = np.r_[ss[1:] == ss[:-1], False]  # the next sample is of the same segment

@@ -155,6 +155,30 @@ def split_at_brightness_steps(
     return seg
 
 
+#: A sample clearly prefers its best slit when that slit's NCC leads the second best by this.
+WINNER_LEAD = 0.1
+
+
+def clear_winners(scores: F64, min_score: float) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """Each sample's best slit, and whether the sample clearly prefers it.
+
+    Parameters
+    ----------
+    scores : (M, N) float64, NCC per sample and slit (NaN: no candidate)
+    min_score : the best NCC must reach this ...
+
+    Returns
+    -------
+    win : (M,) intp, the best slit
+    clear : (M,) bool, the best NCC reaches ``min_score`` and leads the second best by
+        :data:`WINNER_LEAD`
+    """
+    S = np.where(np.isfinite(scores), scores, -1.0)
+    top2 = np.sort(S, axis=1)[:, -2:] if S.shape[1] > 1 else np.c_[np.full(len(S), -1.0), S]
+    win = np.argmax(S, axis=1)
+    return win, (top2[:, 1] >= min_score) & (top2[:, 1] - top2[:, 0] >= WINNER_LEAD)
+
+
 def split_at_winner_changes(
     seg: I64, v: F64, si: NDArray[np.intp], scores: F64, min_score: float
 ) -> I64:
@@ -171,7 +195,7 @@ def split_at_winner_changes(
     si : (M,) intp, the sample points (indices into the points)
     scores : (M, N) float64, NCC per sample and slit (NaN: no candidate)
     min_score : a sample is confident if its best score reaches this and leads the second
-        best by >= 0.1
+        best by :data:`WINNER_LEAD` (:func:`clear_winners`)
 
     Returns
     -------
@@ -180,10 +204,7 @@ def split_at_winner_changes(
     seg = seg.copy()
     if len(si) == 0:
         return seg
-    S = np.where(np.isfinite(scores), scores, -1.0)
-    top2 = np.sort(S, axis=1)[:, -2:] if S.shape[1] > 1 else np.c_[np.full(len(S), -1.0), S]
-    win = np.argmax(S, axis=1)
-    strong = (top2[:, 1] >= min_score) & (top2[:, 1] - top2[:, 0] >= 0.1)
+    win, strong = clear_winners(scores, min_score)
     next_id = int(seg.max()) + 1
     ss = seg[si]
     # only segments with >= 4 strong samples whose winner changes can split
