@@ -514,20 +514,24 @@ def _drop_out_of_order(
     dropped: dict[str, int],
     spacing_px: float,
 ) -> None:
-    """Left-to-right order: of each pair of segments side by side in a row (within 1.5
-    ``spacing_px``) out of slit order, drop the less confident; updates ``slit``, ``conf``,
-    ``lut_k``, ``lut_c`` and ``dropped`` in place."""
+    """Left-to-right order: of each pair of points of two segments side by side in a row
+    (within 1.5 ``spacing_px``) out of slit order, the point of the less confident segment is
+    left out (a segment may keep its other rows: at an object's edge the order breaks in the
+    edge's rows only); a segment left with none of its points is dropped. Updates ``slit``,
+    ``conf``, ``has``, ``lut_k``, ``lut_c`` and ``dropped`` in place."""
+    before = np.unique(seg[(slit >= 0) & (seg >= 0)])
     for _ in range(10):
-        bad = order_violations(ex.u, ex.v, slit, seg, 1.5 * spacing_px)
-        if not bad:
+        a, b = order_violations(ex.u, ex.v, slit, seg, 1.5 * spacing_px)
+        if a.size == 0:
             break
-        drop = {a if lut_c[a] < lut_c[b] else b for a, b in bad}
-        for sid in drop:
-            lut_k[sid] = -1
-            lut_c[sid] = 0.0
-            dropped["order"] += 1
-        slit[has] = lut_k[seg[has]]
-        conf[has] = lut_c[seg[has]]
+        out = np.where(lut_c[seg[a]] < lut_c[seg[b]], a, b)
+        slit[out] = -1
+        conf[out] = 0.0
+        has[out] = False
+    gone = np.setdiff1d(before, seg[(slit >= 0) & (seg >= 0)])
+    lut_k[gone] = -1
+    lut_c[gone] = 0.0
+    dropped["order"] += int(gone.size)
 
 
 def _apply_order_rules(

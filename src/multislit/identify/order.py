@@ -9,7 +9,7 @@ identification (:mod:`multislit.identify`) and the calibration labelling
 
 The identification's order rules are here too: per point the slit its place in its row implies
 (:func:`order_labels`), slit numbers for segments the dots left unidentified
-(:func:`fill_by_order`, :func:`confirm_by_neighbours`), and the pairs of neighbouring segments
+(:func:`fill_by_order`, :func:`confirm_by_neighbours`), and the points of neighbouring segments
 out of slit order (:func:`order_violations`).
 """
 
@@ -165,23 +165,38 @@ def apply_run_offsets(
 
 def order_violations(
     u: F64, v: F64, slit: I64, seg: I64, max_gap_px: float
-) -> set[tuple[int, int]]:
-    """Pairs of segments side by side in a row (closer than ``max_gap_px``) out of slit order.
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Points side by side in a row (closer than ``max_gap_px``), of two segments, out of slit
+    order.
 
     Across an occlusion or a shadow the order of slits can legitimately change, but two stripes
-    directly next to each other on one surface keep the projector's left-to-right order.
+    directly next to each other on one surface keep the projector's left-to-right order. Where
+    a stripe on an object's edge meets a stripe of the surface behind, the two lie side by side
+    in only the rows of the edge: the contradiction is local to those rows.
+
+    Parameters
+    ----------
+    u, v : (K,) float64, px, stripe centres
+    slit : (K,) int64, slit number (-1: none; those points are ignored)
+    seg : (K,) int64, segment id
+    max_gap_px : px, largest gap between two centres that counts as side by side
+
+    Returns
+    -------
+    left, right : (P,) intp, the point indices of each violating pair, ``left`` left of
+        ``right`` in its row, with ``slit[left] >= slit[right]``
     """
-    m = slit >= 0
-    if m.sum() < 2:
-        return set()
+    m = np.flatnonzero(slit >= 0)
+    if m.size < 2:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
     row = np.round(v[m]).astype(np.int64)
-    uu, ss, gg = u[m], slit[m], seg[m]
-    o = np.lexsort((uu, row))
-    row, uu, ss, gg = row[o], uu[o], ss[o], gg[o]
+    idx = m[np.lexsort((u[m], row))]
+    row = np.round(v[idx]).astype(np.int64)
+    uu, ss, gg = u[idx], slit[idx], seg[idx]
     same = row[1:] == row[:-1]
     near = (uu[1:] - uu[:-1]) < max_gap_px
-    bad = same & near & (ss[1:] <= ss[:-1]) & (gg[1:] != gg[:-1])
-    return {(int(gg[i]), int(gg[i + 1])) for i in np.flatnonzero(bad)}
+    bad = np.flatnonzero(same & near & (ss[1:] <= ss[:-1]) & (gg[1:] != gg[:-1]))
+    return idx[bad], idx[bad + 1]
 
 
 def _between_agreeing(
