@@ -196,8 +196,44 @@ def on_sphere(points: np.ndarray, sphere: dict) -> np.ndarray:
     return points[_near_sphere(points, sphere)]
 
 
-def evaluate(res: ScanResult, truth: dict) -> list[dict[str, Any]]:
-    """Acceptance rows of one scan: PS/PF for a lone sphere, SD for a bar, F for a plate."""
+def diameter_se(points: np.ndarray) -> float:
+    """Standard error (mm) of the fitted diameter of ``points`` (N, 3) mm: ``2 sqrt(C[r, r])``
+    with ``C = s^2 (J^T J)^-1`` at the least-squares sphere (J: the residuals' Jacobian in
+    centre and radius, s^2: residual sum of squares / (N - 4)). It takes the residuals as
+    independent, so it is a lower bound where they are correlated along the stripes; it shows
+    how well the points' coverage of the sphere determines the size (two short nearly parallel
+    arcs determine it poorly)."""
+    f = fit_sphere(points)
+    d = points - f.centre
+    rho = np.linalg.norm(d, axis=1)
+    J = np.column_stack([-d / rho[:, None], -np.ones(len(points))])
+    s2 = float(np.sum(f.residuals**2)) / max(len(points) - 4, 1)
+    try:
+        return float(2.0 * np.sqrt(s2 * np.linalg.inv(J.T @ J)[3, 3]))
+    except np.linalg.LinAlgError:  # the points do not determine the sphere
+        return float("inf")
+
+
+def arc_coverage(res: ScanResult, pixels: dict, name: str) -> str:
+    """Per slit crossing primitive ``name``: its true stripe-centre pixels there with a point of
+    that slit, as "slit: found/true" (``pixels``: the image's truth npz arrays)."""
+    from multislit.sim.evaluate import object_metrics
+
+    region = pixels["obj"] == list(pixels["names"]).index(name)
+    tslit = pixels["slit"]
+    parts = []
+    for k in np.unique(tslit[region & (tslit >= 0)]):
+        m = object_metrics(res.identification, tslit, region & (tslit == k))["object"]
+        if m["centres"]:
+            parts.append(f"{k}: {round(m['coverage'] * m['centres'])}/{m['centres']}")
+    return ", ".join(parts)
+
+
+def evaluate(res: ScanResult, truth: dict, pixels: dict | None = None) -> list[dict[str, Any]]:
+    """Acceptance rows of one scan: PS/PF for a lone sphere, SD for a bar, F for a plate.
+
+    ``pixels`` (optional): the image's per-pixel truth (``truth/<name>.npz``); with it a lone
+    sphere's note gives each slit arc's found/true stripe-centre rows."""
     rows: list[dict[str, Any]] = []
     name = res.name
     pts = res.points
@@ -241,14 +277,17 @@ def evaluate(res: ScanResult, truth: dict) -> list[dict[str, Any]]:
             arcs = len(
                 np.unique(res.slit[np.linalg.norm(pts - c, axis=1) < s["radius"] + SELECT_MM])
             )
+            cover = ""
+            if pixels is not None:
+                cover = f"; rows found/true {arc_coverage(res, pixels, 'sphere')}"
             try:
                 off = float(np.linalg.norm(fit_sphere(p).centre - c))
                 note = (
                     f"d = {d:.0f} mm at {dist:.0f} mm from the camera; centre off {off:.3f} mm; "
-                    f"{arcs} slit arcs"
+                    f"SE(d) {diameter_se(p):.3f} mm; {arcs} slit arcs{cover}"
                 )
             except MultislitError as exc:
-                note = f"no fit ({arcs} slit arcs): {exc}"
+                note = f"no fit ({arcs} slit arcs{cover}): {exc}"
             rows.append(
                 {
                     "artefact": name,
@@ -297,7 +336,9 @@ def run_suite(
         for sc in scenes:
             res = scan(rig, sc.name)
             scan_s.append(res.seconds)
-            rows += evaluate(res, rig.scenes[sc.name])
+            with np.load(rig.capture.root / "truth" / f"{sc.name}.npz") as z:
+                pixels = {k: z[k] for k in ("obj", "names", "slit")}
+            rows += evaluate(res, rig.scenes[sc.name], pixels)
         hole_rows: list[dict[str, Any]] = []
         if holes:
             from multislit.app.demo import run_demo
@@ -325,7 +366,10 @@ def to_markdown(r: dict[str, Any]) -> str:
         f"measuring volume diagonal ~{r['diagonal_mm']:.0f} mm (field at 900 mm x reference "
         "depth span 780-1020 mm). One hand-reading calibration and one reference set for all "
         "scans. Points selected by distance to the true artefact (spheres r + 5 mm, plates "
-        "5 mm). No MPE is specified, so no pass/fail.\n",
+        "5 mm). No MPE is specified, so no pass/fail. Sphere notes: SE(d) is the fitted "
+        "diameter's standard error from the fit's covariance (residuals taken as independent); "
+        "rows found/true, per slit arc, counts the sphere's true stripe-centre rows that have a "
+        "point of that slit.\n",
         markdown_table(
             ["artefact", "quantity", "value (mm)", "0.3 % left out (mm)", "points", "note"],
             [
