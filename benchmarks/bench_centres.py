@@ -16,6 +16,7 @@ Reported per method: RMS (mm) of the points within 1 mm of the truth, the median
 share (%) of points more than 1 mm off (centres on the wrong surface at occlusions and edges).
 
 Run:  .venv/bin/python benchmarks/bench_centres.py [--scale 1.0] [--slits 25] [--seed 0]
+      [--degree auto]
 """
 
 from __future__ import annotations
@@ -61,6 +62,12 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="image scale (1 = 1280x1024)")
     ap.add_argument("--slits", type=int, default=25, choices=(25, 49))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--degree",
+        default="auto",
+        choices=("auto", "0", "1", "2"),
+        help="degree of refine_centres' along-stripe fit (default auto)",
+    )
     a = ap.parse_args()
     spec = dense_rig() if a.slits == 49 else RigSpec()
     if a.scale != 1.0:
@@ -88,6 +95,7 @@ def main() -> None:
             gauss.segment,
             gauss.stripe_width_px,
             gauss.dot_size_px,
+            degree=a.degree if a.degree == "auto" else int(a.degree),
         )
         s = summary(point_errors(rig, r, scene, u[m], gauss.v[m]))
         cells.append(

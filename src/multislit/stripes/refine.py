@@ -6,6 +6,7 @@ import math
 
 import cv2
 import numpy as np
+import scipy.stats
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
@@ -26,6 +27,12 @@ F64 = NDArray[np.float64]
 
 #: Steger's smoothing sigma in :func:`refine_centres`, in units of the stripe's own sigma.
 REFINE_STEGER_SCALE = 1.25
+
+#: Significance level of the test that picks degree 2 over degree 1 for a point's fit in
+#: :func:`refine_centres` (``degree="auto"``), for Gaussian noise.
+_CURVED_ALPHA = 1e-4
+#: Fewest pairs of windows for the noise scale of that test (else degree 1 everywhere).
+_CURVED_MIN_PAIRS = 50
 
 
 def refine_slit_image(
@@ -83,7 +90,7 @@ def refine_centres(
     dot_size_px: float | None = None,
     *,
     half_rows: int | None = None,
-    degree: int = 1,
+    degree: int | str = "auto",
     max_shift_px: float = 1.0,
     steger_scale: float = REFINE_STEGER_SCALE,
     end_rows: int | None = None,
@@ -97,20 +104,34 @@ def refine_centres(
        smoothed by a Gaussian of ``steger_scale`` stripe sigmas, by two Newton steps from the
        given centre, on :func:`refine_slit_image` (the row median background averaged over
        2 ``half_rows`` + 1 rows and 2 :func:`median_stride` + 1 columns, dots refilled).
-    2. Along the stripe: a polynomial in v of ``degree`` (default 1, a line) fitted by least
-       squares to the Steger centres of the *same segment* in rows v - R .. v + R
-       (R = ``half_rows``), evaluated at v. The fit follows a slanted stripe exactly; for a
-       curved one, degree 1 is biased by c R (R + 1) / 3 px (c = d2u/dv2 / 2, ~0.01 px for
-       c = 1e-4 px/row^2 and R = 9) and degree 2 is not, at ~1.5x the noise. The window is
-       symmetric about v, shrunk near the segment's ends, and never takes rows of another
-       segment, so the centre does not cross segment ends or occlusion edges.
+    2. Along the stripe: a polynomial in v fitted by least squares to the Steger centres of
+       the *same segment* in rows v - R .. v + R (R = ``half_rows``), evaluated at v. The
+       window is symmetric about v, shrunk near the segment's ends, and never takes rows of
+       another segment, so the centre does not cross segment ends or occlusion edges. A line
+       (degree 1) follows a slanted stripe exactly; on a curved one it is biased by
+       c R (R + 1) / 3 px (c = d2u/dv2 / 2: 0.01 px for c = 1e-4 px/row^2 and R = 9, but
+       ~0.3 px on the arcs of a 40 mm sphere at 0.9 m, c ~ 0.01 px/row^2); a parabola
+       (degree 2) is not, at ~1.4x the noise. ``degree="auto"`` (default) takes the
+       parabola only where the window's curvature is significant: where the two fits differ,
+       d = u2 - u1, by more than the noise explains, d^2 > s^2 g chi2_1(1 - 1e-4). Here g is
+       var(u2 - u1) for unit independent noise (var(u2) - var(u1), from the window's rows)
+       and s^2 the noise variance, from pairs of disjoint windows 2 R + 1 rows apart on one
+       segment, whose curvature cancels in d_a - d_b: median((d_a - d_b)^2 / (g_a + g_b)) /
+       median(chi2_1) over the image (degree 1 everywhere with fewer than 50 pairs). The
+       noise scale comes from the image, not the window's residuals: the Steger centres of
+       neighbouring rows are correlated (speckle, dot refill, background average), which
+       makes a per-window F-test pick the parabola on straight stripes far more often than
+       its level says. The test must also hold, with the same sign of d, for a window R rows
+       before or after on the segment: a surface's curvature goes on along the stripe,
+       while one bad row centre changes the sign of d from one window to the other.
 
     A point keeps its given centre (``ok`` False) where the refinement is not trustworthy: no
     segment (< 0); within ``end_rows`` + R // 2 rows of its segment's end (the rows within
     ``end_rows`` of an end also stay out of the other rows' fits: there the extraction's and
     this dot refill mix the stripe with what lies beyond the end); fewer than ``degree + 2``
-    rows in the window; another stripe point in its row within the Steger kernel's reach
-    (3 smoothing sigmas + 2.5 stripe sigmas); or a move of more than ``max_shift_px``.
+    rows in the window (3 for "auto"); another stripe point in its row within the Steger
+    kernel's reach (3 smoothing sigmas + 2.5 stripe sigmas); or a move of more than
+    ``max_shift_px``.
 
     Parameters
     ----------
@@ -122,7 +143,8 @@ def refine_centres(
     dot_size_px : dot FWHM (px) for the dot refill; default ``stripe_width_px``
     half_rows : R, rows on each side in the along-stripe fit; default
         :func:`refine_half_rows` (2.5 FWHM)
-    degree : 0, 1 or 2, degree of the along-stripe polynomial; default 1
+    degree : "auto", 0, 1 or 2, degree of the along-stripe polynomial; default "auto":
+        2 where the test above finds the stripe curved, else 1
     max_shift_px : largest accepted move of a centre (px); default 1
     steger_scale : Steger's smoothing sigma in stripe sigmas (FWHM / 2.355); default
         :data:`REFINE_STEGER_SCALE`
@@ -171,12 +193,51 @@ def refine_centres(
     m, row_ok = _steger_kernel(
         hp, mask, opened, slope, slit, done, uu, r, active, ss, length, max_shift_px
     )
-    delta, ok = _fit_kernel(seg, key, order, pos, skey, inner, m, uu, row_ok, R, deg)
+    delta, ok, delta2, gain = _fit_kernel(seg, key, order, pos, skey, inner, m, uu, row_ok, R, deg)
+    if deg < 0:
+        delta = _pick_curved(delta, delta2, gain, key, R)
     # another stripe within the kernel's reach in the same row: its flank biases the centre
     ok &= _row_gaps_kernel(uu, r, h) >= 3.0 * ss + 2.5 * sigma
     ok &= np.abs(delta) <= max_shift_px
     out[ok] = uu[ok] + delta[ok]
     return out, ok
+
+
+def _pick_curved(delta1: F64, delta2: F64, gain: F64, key: NDArray[np.int64], R: int) -> F64:
+    """The shifts of ``degree="auto"``: ``delta2`` (degree 2) where the difference from
+    ``delta1`` (degree 1) is significant against the noise and so is that of a window R rows
+    before or after on the segment, with the same sign; else ``delta1``. ``gain`` (K,) is
+    var(delta2 - delta1) per unit iid noise (NaN where there is no degree-2 fit); ``key``
+    (K,) the points' segment * span + row of :func:`_segment_rows`; ``R`` the half window."""
+    has = np.flatnonzero(np.isfinite(gain) & (gain > 0))
+    d = delta2 - delta1
+    order = has[np.argsort(key[has], kind="stable")]
+    sk = key[order]
+
+    def partner(off: int) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+        """Where the window ``off`` rows further on the segment exists, and its point."""
+        j = np.clip(np.searchsorted(sk, sk + off), 0, max(sk.size - 1, 0))
+        return sk[j] == sk + off, order[j]
+
+    # pairs of disjoint windows 2 R + 1 rows apart: their difference of d has variance
+    # (g_a + g_b) s^2, the curvature they share cancelling
+    pair, b = partner(2 * R + 1)
+    if pair.sum() < _CURVED_MIN_PAIRS:
+        return delta1
+    a, b = order[pair], b[pair]
+    s2 = np.median((d[a] - d[b]) ** 2 / (gain[a] + gain[b])) / scipy.stats.chi2.median(1)
+    sig = np.zeros(d.size, bool)
+    sig[has] = d[has] ** 2 > gain[has] * s2 * scipy.stats.chi2.isf(_CURVED_ALPHA, 1)
+    # a surface's curvature goes on along the stripe; one bad row centre flips the sign of d
+    # between windows R rows apart
+    confirmed = np.zeros(order.size, bool)
+    for off in (-R, R):
+        there, nb = partner(off)
+        confirmed |= there & sig[nb] & (np.sign(d[nb]) == np.sign(d[order]))
+    curved = order[sig[order] & confirmed]
+    out = delta1.copy()
+    out[curved] = delta2[curved]
+    return out
 
 
 def _highpass_and_tensor(img: NDArray, sw: float, R: int, length: int) -> tuple[F32, F32, F32, F32]:
@@ -243,13 +304,13 @@ def _check_options(
     stripe_width_px: float,
     dot_size_px: float | None,
     half_rows: int | None,
-    degree: int,
+    degree: int | str,
     max_shift_px: float,
     steger_scale: float,
     end_rows: int | None,
 ) -> tuple[float, float, int, int, int]:
     """The options of :func:`refine_centres` checked, defaults filled in: stripe width, dot
-    size, half window R, degree and end rows."""
+    size, half window R, degree (-1 for "auto") and end rows."""
     sw = positive_px(stripe_width_px, "stripe_width_px")
     if sw is None:
         raise SlitExtractionError("stripe_width_px must be given (a positive number of pixels)")
@@ -258,9 +319,14 @@ def _check_options(
         raise SlitExtractionError(f"max_shift_px must be > 0, got {max_shift_px}")
     if not math.isfinite(steger_scale) or steger_scale <= 0:
         raise SlitExtractionError(f"steger_scale must be > 0, got {steger_scale}")
-    deg = int_at_least(degree, "degree", 0)
-    if deg > 2:
-        raise SlitExtractionError(f"degree must be 0, 1 or 2, got {degree}")
+    if isinstance(degree, str):
+        if degree != "auto":
+            raise SlitExtractionError(f'degree must be "auto", 0, 1 or 2, got {degree!r}')
+        deg = -1
+    else:
+        deg = int_at_least(degree, "degree", 0)
+        if deg > 2:
+            raise SlitExtractionError(f'degree must be "auto", 0, 1 or 2, got {degree}')
     R = refine_half_rows(sw) if half_rows is None else int_at_least(half_rows, "half_rows", 0)
     end = opening_length(ds) if end_rows is None else int_at_least(end_rows, "end_rows", 0)
     return sw, ds, R, deg, end
@@ -456,12 +522,17 @@ def _segment_rows(seg, r, span, end):
 def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
     """Least-squares polynomial of degree ``deg`` in dv through the Steger centres ``m`` of the
     same segment's rows v - R .. v + R (symmetric window shrunk at the segment's ends, rows
-    with ``inner`` < 0 left out), relative to each point's ``u``: shift and ok (K,)."""
+    with ``inner`` < 0 left out), relative to each point's ``u``: shift and ok (K,). ``deg``
+    -1: both degree 1 (the shift) and 2; then also the degree-2 shift and var(shift2 - shift)
+    per unit iid noise (K,), NaN where there is no degree-2 fit (else 0 and NaN)."""
     K = seg.size
-    n = deg + 1
+    auto = deg < 0
+    n = 3 if auto else deg + 1
     delta = np.zeros(K)
+    delta2 = np.zeros(K)
+    gain = np.full(K, np.nan)
     ok = np.zeros(K, np.bool_)
-    need = min(deg + 2, 2 * R + 1)
+    need = min(3 if auto else deg + 2, 2 * R + 1)
     mom = np.zeros(2 * n - 1)
     rhs = np.zeros(n)
     for i in range(K):
@@ -499,27 +570,36 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
                 pw *= dv
         if count < need:
             continue
-        scale = max(mom[0], 1.0) ** n
         if n == 1:
             det = mom[0]
-            if abs(det) > 1e-9 * scale:
+            if abs(det) > 1e-9 * max(mom[0], 1.0):
                 delta[i] = rhs[0] / det
                 ok[i] = True
-        elif n == 2:
-            det = mom[0] * mom[2] - mom[1] * mom[1]
-            if abs(det) > 1e-9 * scale:
+            continue
+        det = mom[0] * mom[2] - mom[1] * mom[1]
+        line = abs(det) > 1e-9 * max(mom[0], 1.0) ** 2
+        if n == 2 or auto:
+            if line:
                 delta[i] = (rhs[0] * mom[2] - mom[1] * rhs[1]) / det
                 ok[i] = True
+            if n == 2 or not line or count < 4:
+                continue
+        # the normal matrix's first row of cofactors (it is symmetric, Hankel in mom)
+        c0 = mom[2] * mom[4] - mom[3] * mom[3]
+        c1 = mom[2] * mom[3] - mom[1] * mom[4]
+        c2 = mom[1] * mom[3] - mom[2] * mom[2]
+        det3 = mom[0] * c0 + mom[1] * c1 + mom[2] * c2
+        if abs(det3) <= 1e-9 * max(mom[0], 1.0) ** 3:
+            continue
+        d2 = (c0 * rhs[0] + c1 * rhs[1] + c2 * rhs[2]) / det3
+        if auto:
+            delta2[i] = d2
+            # var(shift2) - var(shift1) for unit noise: (A3^-1)_00 - (A2^-1)_00
+            gain[i] = c0 / det3 - mom[2] / det
         else:
-            a = np.empty((3, 3))
-            for x in range(3):
-                for y in range(3):
-                    a[x, y] = mom[x + y]
-            det = np.linalg.det(a)
-            if abs(det) > 1e-9 * scale:
-                delta[i] = np.linalg.solve(a, rhs)[0]
-                ok[i] = True
-    return delta, ok
+            delta[i] = d2
+            ok[i] = True
+    return delta, ok, delta2, gain
 
 
 @njit(cache=True)
