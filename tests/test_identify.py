@@ -22,7 +22,12 @@ from multislit.identify import (
     split_at_brightness_steps,
 )
 from multislit.identify.labelling import _contradicted_by_dots, _identify, _segment_votes
-from multislit.identify.matching import _in_volume, _Options, score_candidates
+from multislit.identify.matching import (
+    _in_volume,
+    _Options,
+    score_candidates,
+    template_col_scale,
+)
 from multislit.identify.order import (
     _between_agreeing,
     _nanmedian_rows,
@@ -118,11 +123,14 @@ def test_wrong_image_size_is_an_error(scenes_reference):
 
 
 # --------------------------------------------------------------------------- fast scoring
-def _straightforward_scores(ref, scan_dots, pu, pv, p, allowed=None, row_shift=None):
+def _straightforward_scores(
+    ref, scan_dots, pu, pv, p, allowed=None, row_shift=None, col_scale=None
+):
     """The candidate scores computed the plain way: every reference patch sampled, normalised
     and dotted with the template (what the fast scoring must reproduce); a template whose rows
-    are shifted is put together row by row from upright patches, each row moved along the dot
-    projector's epipolar line (its vertical motion per px sideways at most 1)."""
+    are shifted is put together pixel by pixel, each row moved along the dot projector's
+    epipolar line (its vertical motion per px sideways at most 1) and its columns
+    ``col_scale`` px apart."""
     R, N = ref.curves.shape[:2]
     w, h = ref.image_size
     hw, hh = p.template_size(ref)
@@ -134,13 +142,13 @@ def _straightforward_scores(ref, scan_dots, pu, pv, p, allowed=None, row_shift=N
         tmpl = normalise_patches(sample_patches(scan_dots, uv, hw, hh))
     else:
         rise = np.clip(direction[:, 1] / direction[:, 0], -1.0, 1.0)
-        rows = [
-            sample_patches(scan_dots, uv + row_shift[:, j, None] * np.c_[np.ones(M), rise], hw, hh)[
-                :, j
-            ]
-            for j in range(2 * hh + 1)
-        ]
-        tmpl = normalise_patches(np.stack(rows, axis=1))
+        c = np.ones(M) if col_scale is None else col_scale
+        dx = np.arange(-hw, hw + 1)[None, None, :]
+        dy = np.arange(-hh, hh + 1)[None, :, None]
+        x = pu[:, None, None] + row_shift[:, :, None] + c[:, None, None] * dx
+        y = pv[:, None, None] + dy + (row_shift * rise[:, None])[:, :, None] + 0 * dx
+        pix = sample_patches(scan_dots, np.c_[x.ravel(), y.ravel()], 0, 0)
+        tmpl = normalise_patches(pix.reshape(M, 2 * hh + 1, 2 * hw + 1))
     uu_all = np.full((R, M, N), np.nan)
     vv_all = np.full((R, M, N), np.nan)
     for r in range(R):
@@ -575,3 +583,28 @@ def test_a_label_its_own_dots_contradict_is_left_out():
     # unlabelled points and points without samples are never flagged
     slit[:40] = -1
     assert not _contradicted_by_dots(seg, si, scores, slit).any()
+
+
+def test_template_columns_follow_the_stripes_spacing(scenes_reference):
+    """Stripes squeezed across (a surface turned away from the projector) give templates whose
+    columns are as much closer together; a sample at an edge (gaps either side that disagree)
+    or a lone stripe keeps 1."""
+    ref = scenes_reference
+    r = ref.curves.shape[0] // 2
+    v0 = 0.5 * ref.image_size[1]
+    u_ref = np.sort(curve_u(ref.curves[r], np.full(ref.num_slits, v0)))
+    mid = u_ref[len(u_ref) // 2]
+    inner = u_ref[len(u_ref) // 2 - 3 : len(u_ref) // 2 + 4]  # seven stripes about the middle
+    for squeeze in (0.6, 1.0, 1.3):
+        u = mid + squeeze * (inner - mid)
+        v = np.full(len(u), v0)
+        got = template_col_scale(u, v, np.arange(1, len(u) - 1), ref)
+        assert np.allclose(got, squeeze, rtol=0.05), (squeeze, got)
+    # the first and last stripes have a neighbour on one side only; at the fourth the gaps
+    # either side (1 and 1.4 reference spacings) disagree
+    u = np.r_[inner[:4], inner[3] + 1.4 * (inner[4:] - inner[3])]
+    got = template_col_scale(u, np.full(len(u), v0), np.arange(len(u)), ref)
+    assert got[0] == 1.0 and got[-1] == 1.0 and got[3] == 1.0
+    assert np.allclose(got[1:3], 1.0, rtol=0.05) and np.allclose(got[4:6], 1.4, rtol=0.05)
+    # samples in rows of their own: nothing to measure
+    assert np.all(template_col_scale(u, np.arange(len(u)) * 3.0, np.arange(len(u)), ref) == 1.0)

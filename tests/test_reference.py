@@ -209,3 +209,23 @@ def test_sheared_patches_shift_each_row(rng):
     assert not np.allclose(got, sample_sheared_patches(img, centres, half_w, half_h, shift))
     with pytest.raises(ValueError, match="row_rise must have shape"):
         sample_sheared_patches(img, centres, half_w, half_h, shift, row_rise=rise[:, 1:])
+
+
+def test_sheared_patches_space_their_columns(rng):
+    img = _sparse_dots(rng, (60, 80))
+    centres = np.c_[rng.uniform(20, 60, 30), np.round(rng.uniform(12, 48, 30))]
+    half_w, half_h = 4, 6
+    ph = 2 * half_h + 1
+    shift = rng.uniform(-2, 2, (30, ph))
+    scale = rng.uniform(0.5, 1.5, 30)
+    got = sample_sheared_patches(img, centres, half_w, half_h, shift, col_scale=scale)
+    # column i of row j: the image at (u + s_j + c i, v + j - half_h)
+    for j in (0, half_h, ph - 1):
+        for i in (-half_w, 0, half_w):
+            at = centres + np.c_[shift[:, j] + scale * i, np.full(30, j - half_h)]
+            want = sample_patches(img, at, 0, 0)[:, 0, 0]
+            assert np.allclose(got[:, j, i + half_w], want, atol=1e-3)
+    ones = sample_sheared_patches(img, centres, half_w, half_h, shift, col_scale=np.ones(30))
+    assert np.array_equal(ones, sample_sheared_patches(img, centres, half_w, half_h, shift))
+    with pytest.raises(ValueError, match="col_scale must hold 30 positive numbers"):
+        sample_sheared_patches(img, centres, half_w, half_h, shift, col_scale=-scale)

@@ -19,7 +19,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
-from multislit.identify.matching import _Options, score_candidates, template_row_shift
+from multislit.identify.matching import (
+    _Options,
+    score_candidates,
+    template_col_scale,
+    template_row_shift,
+)
 from multislit.identify.order import (
     confirm_by_neighbours,
     fill_by_order,
@@ -337,12 +342,16 @@ def _sample_scores(
 ) -> F64:
     """(M, N) NCC of the templates at the sample points ``si`` with each slit's candidates
     (:func:`~.matching.score_candidates`; NaN: no candidate), the templates following their
-    stripes as ``p.follow_stripe`` says, coarse to fine if ``p.coarse_every`` > 1."""
+    stripes as ``p.follow_stripe`` says (their lean, and the stripes' spacing around them:
+    :func:`~.matching.template_col_scale`), coarse to fine if ``p.coarse_every`` > 1."""
     dots = ex.dots.astype(np.float32)
     shift = template_row_shift(ex.u, ex.v, seg, si, reference, hh, p.follow_stripe)
+    scale = None if shift is None else template_col_scale(ex.u, ex.v, si, reference)
     if p.coarse_every > 1 and reference.num_slits > p.keep_hypotheses:
-        return _coarse_to_fine_scores(ex, seg, si, dots, shift, reference, p)
-    return score_candidates(reference, dots, ex.u[si], ex.v[si], p, row_shift=shift)
+        return _coarse_to_fine_scores(ex, seg, si, dots, shift, scale, reference, p)
+    return score_candidates(
+        reference, dots, ex.u[si], ex.v[si], p, row_shift=shift, col_scale=scale
+    )
 
 
 def _coarse_to_fine_scores(
@@ -351,6 +360,7 @@ def _coarse_to_fine_scores(
     si: NDArray[np.intp],
     dots: NDArray[np.float32],
     shift: F64 | None,
+    scale: F64 | None,
     reference: ReferenceSet,
     p: _Options,
 ) -> F64:
@@ -370,6 +380,7 @@ def _coarse_to_fine_scores(
         ex.v[si[coarse]],
         p,
         row_shift=None if shift is None else shift[coarse],
+        col_scale=None if scale is None else scale[coarse],
     )
     allowed = np.zeros((len(si), reference.num_slits), bool)
     coarse_mean = np.full((len(si), reference.num_slits), np.nan)
@@ -384,7 +395,7 @@ def _coarse_to_fine_scores(
         members = np.flatnonzero(ss == sid)
         allowed[np.ix_(members, top)] = True
         coarse_mean[members] = mean
-    scores = score_candidates(reference, dots, ex.u[si], ex.v[si], p, allowed, shift)
+    scores = score_candidates(reference, dots, ex.u[si], ex.v[si], p, allowed, shift, scale)
     # the slits not kept still count in the vote, with their coarse mean score: the margin
     # to the runner-up must not grow just because the runner-up was not scored again
     fill = ~allowed & np.isfinite(coarse_mean)

@@ -140,6 +140,62 @@ def template_row_shift(
     return (slope - s_ref)[:, None] * dy[None, :]
 
 
+#: Neighbouring stripes in a row count for :func:`template_col_scale` at gaps of this range of
+#: the reference's local slit spacing (the order's run gaps: a double detection below, a
+#: hidden stripe above), and where the gaps either side agree within this share.
+_GAP_RANGE = (0.3, 1.6)
+_GAP_AGREE = 0.25
+
+
+def template_col_scale(u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet) -> F64:
+    """(M,) px per template column: how far apart each sample's template samples its columns.
+
+    A surface turned away from the projector squeezes the stripes and the dots between them
+    alike (turned towards it, spreads them). Where the stripe centres next to a sample in its
+    row, left and right, lie at gaps that agree within 25 % and within 0.3-1.6 of the
+    reference's local slit spacing (between the middle reference's curves there), the template
+    takes its columns that mean gap over the reference spacing apart; elsewhere 1 (a sample at
+    an object's edge, a lone stripe).
+
+    Parameters
+    ----------
+    u, v : (K,) float64, px, all the scan's stripe centres
+    si : (M,) intp, the sample points (indices into ``u``, ``v``)
+    ref : the prepared references
+
+    Returns
+    -------
+    (M,) float64, 0.3-1.6 where measured, else 1
+    """
+    out = np.ones(len(si))
+    if len(si) == 0 or ref.num_slits < 2:
+        return out
+    rows = np.rint(v).astype(np.int64)
+    order = np.lexsort((u, rows))
+    pos = np.empty(len(u), np.intp)
+    pos[order] = np.arange(len(u))
+    p = pos[si]
+    left = order[np.maximum(p - 1, 0)]
+    right = order[np.minimum(p + 1, len(u) - 1)]
+    gl = np.where((p > 0) & (rows[left] == rows[si]), u[si] - u[left], np.nan)
+    gr = np.where((p < len(u) - 1) & (rows[right] == rows[si]), u[right] - u[si], np.nan)
+    # the reference's spacing at the sample: the middle reference's curves in its row
+    r = ref.curves.shape[0] // 2
+    U = np.sort(curve_u(ref.curves[r][None, :, :], v[si][:, None]), axis=1)
+    gaps = np.diff(U, axis=1)
+    k = np.minimum(np.argmin(np.abs(U - u[si][:, None]), axis=1), gaps.shape[1] - 1)
+    g_ref = gaps[np.arange(len(si)), k]
+    lo, hi = _GAP_RANGE[0] * g_ref, _GAP_RANGE[1] * g_ref
+    with np.errstate(invalid="ignore"):
+        gl = np.where((gl > lo) & (gl < hi), gl, np.nan)
+        gr = np.where((gr > lo) & (gr < hi), gr, np.nan)
+        agree = np.abs(gl - gr) <= _GAP_AGREE * np.fmin(gl, gr)
+        c = 0.5 * (gl + gr) / g_ref
+    use = agree & np.isfinite(c)
+    out[use] = np.clip(c[use], *_GAP_RANGE)
+    return out
+
+
 def _in_volume(ref: ReferenceSet, uv: F64, margin: float) -> NDArray[np.bool_]:
     """(M, N) bool: could slit n light sample m at a depth inside the measuring volume?
 
@@ -354,6 +410,7 @@ def score_candidates(
     p: _Options,
     allowed: NDArray[np.bool_] | None = None,
     row_shift: F64 | None = None,
+    col_scale: F64 | None = None,
 ) -> F64:
     """NCC of each sample's template at each slit's epipolar intersection.
 
@@ -368,6 +425,8 @@ def score_candidates(
         (:func:`template_row_shift`); each row also moves along the dot projector's epipolar
         line as far as the shift says (a depth change moves the dots along that line, the
         slit along the row); default upright templates
+    col_scale : (M,) float64, px per template column (:func:`template_col_scale`), with
+        ``row_shift`` only; default 1
 
     Returns
     -------
@@ -395,7 +454,13 @@ def score_candidates(
         patches = sample_patches(scan_dots, uv, hw, hh)
     else:
         patches = sample_sheared_patches(
-            scan_dots, uv, hw, hh, row_shift, row_rise=row_shift * _dot_rise(lines)[:, None]
+            scan_dots,
+            uv,
+            hw,
+            hh,
+            row_shift,
+            row_rise=row_shift * _dot_rise(lines)[:, None],
+            col_scale=col_scale,
         )
     tmpl = normalise_patches(patches)  # (M, K)
     rr_f = np.where(fast, rr, 0).reshape(M, -1)

@@ -187,15 +187,20 @@ def _remap_patches(
     half_h: int,
     row_shift: F64 | None = None,
     row_rise: F64 | None = None,
+    col_scale: F64 | None = None,
 ) -> F32:
     """:func:`sample_patches` by ``cv2.remap`` (zero outside the image); ``row_shift`` and
-    ``row_rise`` (M, ph) move each patch row sideways and down (see
-    :func:`sample_sheared_patches`)."""
+    ``row_rise`` (M, ph) move each patch row sideways and down, ``col_scale`` (M,) spaces its
+    columns (see :func:`sample_sheared_patches`)."""
     m = len(centres)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
     du = np.arange(-half_w, half_w + 1, dtype=np.float32)
     dv = np.arange(-half_h, half_h + 1, dtype=np.float32)
-    mx = (centres[:, 0, None, None].astype(np.float32) + du[None, None, :]).repeat(ph, axis=1)
+    if col_scale is None:
+        cols = du[None, None, :]
+    else:
+        cols = (col_scale[:, None, None] * du[None, None, :]).astype(np.float32)
+    mx = (centres[:, 0, None, None].astype(np.float32) + cols).repeat(ph, axis=1)
     if row_shift is not None:
         mx += row_shift.astype(np.float32)[:, :, None]
     my = (centres[:, 1, None, None].astype(np.float32) + dv[None, :, None]).repeat(pw, axis=2)
@@ -225,15 +230,17 @@ def sample_sheared_patches(
     row_shift: F64,
     *,
     row_rise: F64 | None = None,
+    col_scale: F64 | None = None,
 ) -> F32:
     """Bilinear patches whose rows are shifted: row j of patch m is centred on column
     ``centres[m, 0] + row_shift[m, j]`` of image row ``centres[m, 1] + j - half_h +
-    row_rise[m, j]``.
+    row_rise[m, j]``, its columns ``col_scale[m]`` px apart.
 
     This straightens a slanted or curved stripe in a template (the dots keep their place
     across the stripe), so that it can be compared with a reference patch of another slant.
     Where the dots move with depth along a line that is not a row (the dot projector's
-    epipolar line), ``row_rise`` gives the motion's vertical part.
+    epipolar line), ``row_rise`` gives the motion's vertical part. Where a surface squeezes
+    (or spreads) the pattern across the stripes, ``col_scale`` samples it at its own scale.
 
     Parameters
     ----------
@@ -242,6 +249,8 @@ def sample_sheared_patches(
     half_w, half_h : patch half sizes, px
     row_shift : (M, 2*half_h+1) float64, px, sideways shift of each patch row
     row_rise : (M, 2*half_h+1) float64, px, downward shift of each patch row; default none
+    col_scale : (M,) float64, > 0, the spacing of each patch's columns in the image, px per
+        patch column; default 1
 
     Returns
     -------
@@ -255,9 +264,17 @@ def sample_sheared_patches(
         row_rise = np.asarray(row_rise, dtype=np.float64)
         if row_rise.shape != shift.shape:
             raise ValueError(f"row_rise must have shape {shift.shape}, got {row_rise.shape}")
+    if col_scale is not None:
+        col_scale = np.asarray(col_scale, dtype=np.float64)
+        if col_scale.shape != (len(centres),) or not np.all(col_scale > 0):
+            raise ValueError(
+                f"col_scale must hold {len(centres)} positive numbers, got shape {col_scale.shape}"
+            )
     if len(centres) == 0:
         return np.zeros((0, ph, 2 * half_w + 1), np.float32)
-    return _remap_patches(np.asarray(image, np.float32), centres, half_w, half_h, shift, row_rise)
+    return _remap_patches(
+        np.asarray(image, np.float32), centres, half_w, half_h, shift, row_rise, col_scale
+    )
 
 
 def normalise_patches(p: F32) -> F32:

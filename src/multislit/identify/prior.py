@@ -28,7 +28,12 @@ from multislit.identify.labelling import (
     Identification,
     _segment_votes,
 )
-from multislit.identify.matching import _Options, score_candidates, template_row_shift
+from multislit.identify.matching import (
+    _Options,
+    score_candidates,
+    template_col_scale,
+    template_row_shift,
+)
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.segments import clear_winners
 from multislit.stripes import SlitExtraction
@@ -239,8 +244,9 @@ def scores_with_prior(
         kk = k_s[cand]
         allowed = np.abs(np.arange(N)[None, :] - kk[:, None]) <= _NEIGHBOURS
         shift = template_row_shift(ex.u, ex.v, seg, ci, reference, hh, p.follow_stripe)
+        scale = None if shift is None else template_col_scale(ex.u, ex.v, ci, reference)
         sc_c = score_candidates(
-            reference, ex.dots.astype(np.float32), ex.u[ci], ex.v[ci], p, allowed, shift
+            reference, ex.dots.astype(np.float32), ex.u[ci], ex.v[ci], p, allowed, shift, scale
         )
         # samples the prior slit does not explain well are searched over all slits
         own = sc_c[np.arange(len(ci)), kk]
