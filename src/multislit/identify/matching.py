@@ -171,9 +171,13 @@ def template_col_scale(u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet) 
     if len(si) == 0 or ref.num_slits < 2:
         return out
     rows = np.rint(v).astype(np.int64)
-    order = np.lexsort((u, rows))
-    pos = np.empty(len(u), np.intp)
-    pos[order] = np.arange(len(u))
+    same = rows[1:] == rows[:-1]
+    if np.all(rows[1:] >= rows[:-1]) and np.all(u[1:][same] >= u[:-1][same]):
+        order = pos = np.arange(len(u))  # the extraction's order: by row, then column
+    else:
+        order = np.lexsort((u, rows))
+        pos = np.empty(len(u), np.intp)
+        pos[order] = np.arange(len(u))
     p = pos[si]
     left = order[np.maximum(p - 1, 0)]
     right = order[np.minimum(p + 1, len(u) - 1)]
