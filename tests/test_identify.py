@@ -608,3 +608,8 @@ def test_template_columns_follow_the_stripes_spacing(scenes_reference):
     assert np.allclose(got[1:3], 1.0, rtol=0.05) and np.allclose(got[4:6], 1.4, rtol=0.05)
     # samples in rows of their own: nothing to measure
     assert np.all(template_col_scale(u, np.arange(len(u)) * 3.0, np.arange(len(u)), ref) == 1.0)
+    # the centres in any order give the same scales
+    perm = np.random.default_rng(1).permutation(len(u))
+    back = np.argsort(perm)
+    again = template_col_scale(u[perm], np.full(len(u), v0), back, ref)
+    assert np.array_equal(again, got)
