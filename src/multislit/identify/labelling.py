@@ -19,12 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
-from multislit.identify.matching import (
-    _Options,
-    score_candidates,
-    template_col_scale,
-    template_row_shift,
-)
+from multislit.identify.matching import _Options, score_candidates, template_geometry
 from multislit.identify.order import (
     confirm_by_neighbours,
     fill_by_order,
@@ -345,8 +340,7 @@ def _sample_scores(
     stripes as ``p.follow_stripe`` says (their lean, and the stripes' spacing around them:
     :func:`~.matching.template_col_scale`), coarse to fine if ``p.coarse_every`` > 1."""
     dots = ex.dots.astype(np.float32)
-    shift = template_row_shift(ex.u, ex.v, seg, si, reference, hh, p.follow_stripe)
-    scale = None if shift is None else template_col_scale(ex.u, ex.v, si, reference)
+    shift, scale = template_geometry(ex.u, ex.v, seg, si, reference, hh, p.follow_stripe)
     if p.coarse_every > 1 and reference.num_slits > p.keep_hypotheses:
         return _coarse_to_fine_scores(ex, seg, si, dots, shift, scale, reference, p)
     return score_candidates(

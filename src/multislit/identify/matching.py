@@ -200,6 +200,16 @@ def template_col_scale(u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet) 
     return out
 
 
+def template_geometry(
+    u: F64, v: F64, seg: I64, si: NDArray[np.intp], ref: ReferenceSet, hh: int, mode: str
+) -> tuple[F64 | None, F64 | None]:
+    """How the templates at the samples ``si`` follow their stripes (``_Options.follow_stripe``
+    ``mode``): their rows' sideways shifts (:func:`template_row_shift`) and their columns'
+    spacing (:func:`template_col_scale`); (None, None) for "off" (upright templates)."""
+    shift = template_row_shift(u, v, seg, si, ref, hh, mode)
+    return shift, None if shift is None else template_col_scale(u, v, si, ref)
+
+
 def _in_volume(ref: ReferenceSet, uv: F64, margin: float) -> NDArray[np.bool_]:
     """(M, N) bool: could slit n light sample m at a depth inside the measuring volume?
 

@@ -190,8 +190,8 @@ def order_violations(
     if m.size < 2:
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
     row = np.round(v[m]).astype(np.int64)
-    idx = m[np.lexsort((u[m], row))]
-    row = np.round(v[idx]).astype(np.int64)
+    o = np.lexsort((u[m], row))
+    idx, row = m[o], row[o]
     uu, ss, gg = u[idx], slit[idx], seg[idx]
     same = row[1:] == row[:-1]
     near = (uu[1:] - uu[:-1]) < max_gap_px

@@ -28,12 +28,7 @@ from multislit.identify.labelling import (
     Identification,
     _segment_votes,
 )
-from multislit.identify.matching import (
-    _Options,
-    score_candidates,
-    template_col_scale,
-    template_row_shift,
-)
+from multislit.identify.matching import _Options, score_candidates, template_geometry
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.segments import clear_winners
 from multislit.stripes import SlitExtraction
@@ -243,8 +238,7 @@ def scores_with_prior(
     if ci.size:
         kk = k_s[cand]
         allowed = np.abs(np.arange(N)[None, :] - kk[:, None]) <= _NEIGHBOURS
-        shift = template_row_shift(ex.u, ex.v, seg, ci, reference, hh, p.follow_stripe)
-        scale = None if shift is None else template_col_scale(ex.u, ex.v, ci, reference)
+        shift, scale = template_geometry(ex.u, ex.v, seg, ci, reference, hh, p.follow_stripe)
         sc_c = score_candidates(
             reference, ex.dots.astype(np.float32), ex.u[ci], ex.v[ci], p, allowed, shift, scale
         )
