@@ -227,5 +227,7 @@ def test_sheared_patches_space_their_columns(rng):
             assert np.allclose(got[:, j, i + half_w], want, atol=1e-3)
     ones = sample_sheared_patches(img, centres, half_w, half_h, shift, col_scale=np.ones(30))
     assert np.array_equal(ones, sample_sheared_patches(img, centres, half_w, half_h, shift))
-    with pytest.raises(ValueError, match="col_scale must hold 30 positive numbers"):
+    with pytest.raises(ValueError, match="col_scale must be > 0"):
         sample_sheared_patches(img, centres, half_w, half_h, shift, col_scale=-scale)
+    with pytest.raises(ValueError, match=r"col_scale must have shape \(30,\)"):
+        sample_sheared_patches(img, centres, half_w, half_h, shift, col_scale=scale[1:])

@@ -266,9 +266,11 @@ def sample_sheared_patches(
             raise ValueError(f"row_rise must have shape {shift.shape}, got {row_rise.shape}")
     if col_scale is not None:
         col_scale = np.asarray(col_scale, dtype=np.float64)
-        if col_scale.shape != (len(centres),) or not np.all(col_scale > 0):
+        if col_scale.shape != (len(centres),):
+            raise ValueError(f"col_scale must have shape ({len(centres)},), got {col_scale.shape}")
+        if not np.all(col_scale > 0):
             raise ValueError(
-                f"col_scale must hold {len(centres)} positive numbers, got shape {col_scale.shape}"
+                f"col_scale must be > 0 (px per patch column), got {col_scale.min():g} at least"
             )
     if len(centres) == 0:
         return np.zeros((0, ph, 2 * half_w + 1), np.float32)
