@@ -270,3 +270,341 @@ def test_refine_rejects_bad_degree(degree):
     img = np.zeros((20, 20), np.uint8)
     with pytest.raises(ValueError, match="degree must be"):
         refine_centres(img, [5.0], [5.0], [0], 3.0, degree=degree)
+
+
+# --------------------------------------------------------------------------- fast paths
+# Each compiled shortcut of the refinement against a plain formulation kept here, bit for bit.
+def _fit_reference(seg, key, skey, order, inner, m, u, row_ok, R, deg):
+    """The along-stripe fits point by point: neighbours by np.searchsorted, the normal
+    equations' moments and right-hand sides accumulated as powers of dv in order of dv, solved
+    by cofactors (as ``_fit_kernel``)."""
+    K = seg.size
+    auto = deg < 0
+    n = 3 if auto else deg + 1
+    delta, delta2 = np.zeros(K), np.zeros(K)
+    gain, ok = np.full(K, np.nan), np.zeros(K, bool)
+    need = min(3 if auto else deg + 2, 2 * R + 1)
+    for i in range(K):
+        reach = min(inner[i], R)
+        if seg[i] < 0 or inner[i] < 0 or reach < R // 2:
+            continue
+        mom, rhs, count = np.zeros(2 * n - 1), np.zeros(n), 0
+        for dv in range(-reach, reach + 1):
+            q = min(int(np.searchsorted(skey, key[i] + dv)), K - 1)
+            nb = order[q]
+            if skey[q] != key[i] + dv or not row_ok[nb] or inner[nb] < 0:
+                continue
+            count += 1
+            for k in range(2 * n - 1):
+                mom[k] += float(dv) ** k
+                if k < n:
+                    rhs[k] += (m[nb] - u[i]) * float(dv) ** k
+        if count < need:
+            continue
+        if n == 1:
+            if abs(mom[0]) > 1e-9 * max(mom[0], 1.0):
+                delta[i], ok[i] = rhs[0] / mom[0], True
+            continue
+        det = mom[0] * mom[2] - mom[1] * mom[1]
+        line = abs(det) > 1e-9 * max(mom[0], 1.0) ** 2
+        if n == 2 or auto:
+            if line:
+                delta[i], ok[i] = (rhs[0] * mom[2] - mom[1] * rhs[1]) / det, True
+            if n == 2 or not line or count < 4:
+                continue
+        c0 = mom[2] * mom[4] - mom[3] * mom[3]
+        c1 = mom[2] * mom[3] - mom[1] * mom[4]
+        c2 = mom[1] * mom[3] - mom[2] * mom[2]
+        det3 = mom[0] * c0 + mom[1] * c1 + mom[2] * c2
+        if abs(det3) <= 1e-9 * max(mom[0], 1.0) ** 3:
+            continue
+        d2 = (c0 * rhs[0] + c1 * rhs[1] + c2 * rhs[2]) / det3
+        if auto:
+            delta2[i], gain[i] = d2, c0 / det3 - mom[2] / det
+        else:
+            delta[i], ok[i] = d2, True
+    return delta, ok, delta2, gain
+
+
+def _pick_curved_reference(delta1, delta2, gain, key, R):
+    """degree="auto"'s choice with NumPy sorts and searches throughout."""
+    from multislit.stripes.refine import _CURVED_MIN_PAIRS
+
+    has = np.flatnonzero(np.isfinite(gain) & (gain > 0))
+    d = delta2 - delta1
+    order = has[np.argsort(key[has], kind="stable")]
+    sk = key[order]
+
+    def partner(off):
+        j = np.clip(np.searchsorted(sk, sk + off), 0, max(sk.size - 1, 0))
+        return sk[j] == sk + off, order[j]
+
+    pair, b = partner(2 * R + 1)
+    if pair.sum() < _CURVED_MIN_PAIRS:
+        return delta1
+    a, b = order[pair], b[pair]
+    s2 = np.median((d[a] - d[b]) ** 2 / (gain[a] + gain[b])) / scipy.stats.chi2.median(1)
+    sig = np.zeros(d.size, bool)
+    sig[has] = d[has] ** 2 > gain[has] * s2 * scipy.stats.chi2.isf(_CURVED_ALPHA, 1)
+    confirmed = np.zeros(order.size, bool)
+    for off in (-R, R):
+        there, nb = partner(off)
+        confirmed |= there & sig[nb] & (np.sign(d[nb]) == np.sign(d[order]))
+    curved = order[sig[order] & confirmed]
+    out = delta1.copy()
+    out[curved] = delta2[curved]
+    return out
+
+
+def _segment_points(rng, n_seg=14, h=120, R=4):
+    """Row-ordered points on ``n_seg`` segments with gaps (one point per row and segment) and
+    some off any segment: seg, rows, and the span of ``_segment_rows``'s keys."""
+    seg, rows = [], []
+    for s in range(n_seg):
+        a = int(rng.integers(0, h // 2))
+        q = np.arange(a, min(h, a + int(rng.integers(10, h))))
+        q = q[rng.random(q.size) > 0.1]  # gaps
+        seg.append(np.full(q.size, s))
+        rows.append(q)
+    q = rng.integers(0, h, 30)
+    seg, rows = np.concatenate([*seg, np.full(30, -1)]), np.concatenate([*rows, q])
+    o = np.argsort(rows, kind="stable")  # row order, as from the extraction
+    return seg[o].astype(np.int64), rows[o].astype(np.intp), h + 2 * R + 2
+
+
+def test_segment_rows_sort_matches_numpy_stable_argsort():
+    """The counting sort of row-ordered points, and the merge sort otherwise (shuffled points,
+    a segment id below -1), give NumPy's stable argsort and the same keys and ends."""
+    from multislit.stripes.refine import _segment_rows
+
+    rng = np.random.default_rng(1)
+    seg, rows, span = _segment_points(rng)
+    shuffled = rng.permutation(seg.size)
+    for s, r in ((seg, rows), (seg[shuffled], rows[shuffled]), (np.where(seg == 3, -4, seg), rows)):
+        key, order, pos, skey, inner = _segment_rows(s, r, span, 2)
+        want_key = np.where(s >= 0, s * span + r, -1)
+        want_order = np.argsort(want_key, kind="stable")
+        np.testing.assert_array_equal(key, want_key)
+        np.testing.assert_array_equal(order, want_order)
+        np.testing.assert_array_equal(skey, want_key[want_order])
+        np.testing.assert_array_equal(order[pos], np.arange(s.size))
+        for g in np.unique(s[s >= 0]):
+            on = s == g
+            want = np.minimum(r[on] - r[on].min(), r[on].max() - r[on]) - 2
+            np.testing.assert_array_equal(inner[on], want)
+
+
+@pytest.mark.parametrize("deg", [-1, 0, 1, 2])
+def test_fit_kernel_matches_pointwise_reference(deg):
+    """The compiled along-stripe fits (one forward walk for the neighbours, moments in
+    registers) give the point-by-point reference's shifts, bit for bit."""
+    from multislit.stripes.refine import _fit_kernel, _segment_rows
+
+    rng = np.random.default_rng(2)
+    R = 4
+    seg, rows, span = _segment_points(rng, R=R)
+    key, order, pos, skey, inner = _segment_rows(seg, rows, span, 2)
+    u = rng.uniform(10, 90, seg.size)
+    m = u + rng.normal(0, 0.3, seg.size)
+    row_ok = rng.random(seg.size) > 0.15
+    got = _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg)
+    want = _fit_reference(seg, key, skey, order, inner, m, u, row_ok, R, deg)
+    assert got[1].sum() > 0.5 * seg.size
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_pick_curved_matches_numpy_reference():
+    """degree="auto"'s choice by merge walks and a compiled loop equals the NumPy version
+    (sorts, searchsorted), bit for bit, with both choices made."""
+    from multislit.stripes.refine import _pick_curved, _segment_rows
+
+    rng = np.random.default_rng(3)
+    R = 3
+    seg, rows, span = _segment_points(rng, n_seg=20, h=200, R=R)
+    key, order, *_ = _segment_rows(seg, rows, span, 0)
+    K = seg.size
+    delta1 = rng.normal(0, 0.1, K)
+    # d = delta2 - delta1: a curvature per segment, from none to well above the noise, so
+    # that many points lie near the test's threshold
+    bend = np.r_[rng.uniform(-0.4, 0.4, seg.max() + 1), 0.0][seg]
+    delta2 = delta1 + rng.normal(0, 0.05, K) + bend
+    gain = np.where(seg >= 0, rng.uniform(0.01, 0.05, K), np.nan)
+    gain[rng.random(K) < 0.05] = np.nan  # points without a degree-2 fit
+    got = _pick_curved(delta1, delta2, gain, key, order, R)
+    want = _pick_curved_reference(delta1, delta2, gain, key, R)
+    np.testing.assert_array_equal(got, want)
+    assert 0 < np.mean(got != delta1) < 1
+
+
+def _steger_setup(img, ex):
+    """The inputs of ``_steger_kernel`` for an extraction's points, as refine_centres makes
+    them (copies: the work arrays are reused by the next call)."""
+    from multislit.stripes.refine import (
+        _SLOPE_BLOCK,
+        _dot_mask,
+        _highpass_and_tensor,
+        _segment_rows,
+    )
+    from multislit.stripes.separation import noise_from_difference
+
+    h, w = img.shape
+    sw, ds = ex.stripe_width_px, ex.dot_size_px
+    R, length = refine_half_rows(sw), opening_length(ds)
+    ss = max(1.25 * sw / FWHM_PER_SIGMA, 0.7)
+    r = np.rint(ex.v).astype(np.intp)
+    seg = ex.segment.astype(np.int64)
+    *_, inner = _segment_rows(seg, r, h + 2 * R + 2, length)
+    hp, put, pvt, g, _ = (a.copy() for a in _highpass_and_tensor(img, sw, R, length))
+    mask, opened, *_ = (a.copy() for a in _dot_mask(hp, length, 3.0 * noise_from_difference(img)))
+    active = (seg >= 0) & (inner >= 0)
+
+    def slope():
+        state = np.zeros((w, -(-h // _SLOPE_BLOCK)), np.uint8)
+        return (put, pvt, g, np.zeros((w, h), np.float32), np.zeros((w, h), np.float32), state)
+
+    return hp, mask, opened, slope, r, active, ss, length
+
+
+def _plain_slope_pass(put, pvt, g):
+    """The slope Gaussian's pass along u over the whole (W, H) products: sum_j g_j
+    put[reflect101(c + j)], float32, taps in order."""
+    w = put.shape[0]
+    rk = g.size // 2
+    cols = np.arange(w)
+    hx, hy = np.zeros(put.shape, np.float32), np.zeros(put.shape, np.float32)
+    for j in range(-rk, rk + 1):
+        cc = np.abs(cols + j)
+        cc = np.where(cc > w - 1, 2 * (w - 1) - cc, cc)
+        hx += g[j + rk] * put[cc]
+        hy += g[j + rk] * pvt[cc]
+    return hx, hy
+
+
+def _plain_fill(hp, mask, opened, hx, hy, g, q0, c, lim):
+    """fill_dots at the dot pixel (q0, c), in NumPy float32 scalars: the run walked from q0,
+    the slope from the plain Gaussian passes at the run's middle, the interpolation along it."""
+    h, w = hp.shape
+    start, stop = q0, q0 + 1
+    while start > 0 and q0 - start <= lim and mask[start - 1, c]:
+        start -= 1
+    while stop < h and stop - start <= lim and mask[stop, c]:
+        stop += 1
+    n = stop - start
+    if start == 0 or stop == h or n > lim:
+        return opened[q0, c]
+    rk = g.size // 2
+    juu = juv = np.float32(0.0)
+    for i in range(-rk, rk + 1):
+        q = abs(start + n // 2 + i)
+        q = 2 * (h - 1) - q if q > h - 1 else q
+        juu += g[i + rk] * hx[c, q]
+        juv += g[i + rk] * hy[c, q]
+    s = min(max(np.float32(-juv / max(juu, np.float32(1e-6))), np.float32(-1)), np.float32(1))
+
+    def sample(r, x):
+        x = min(max(x, 0.0), w - 1.0)
+        u0 = min(math.floor(x), w - 2)
+        a, b = hp[r, u0], hp[r, u0 + 1]
+        return np.float32(a + np.float32(np.float32(b - a) * np.float32(x - u0)))
+
+    t = q0 - start + 1
+    above = sample(start - 1, c - float(s) * t)
+    below = sample(stop, c + float(s) * (n + 1 - t))
+    val = float(above) + float(np.float32(below - above)) * (t / float(np.float32(n + 1)))
+    return np.float32(min(val, float(hp[q0, c])))
+
+
+def test_refilled_dots_match_plain_fill_and_cover_the_windows():
+    """The dots refilled ahead of the Steger steps hold the plain fill_dots values (slope
+    Gaussian summed in order, bit for bit), and every pixel the steps read is refilled: the
+    centres are the same when the dot pixels left over hold a huge value."""
+    from multislit.stripes.refine import _refill_dots, _steger_kernel
+
+    img, _ = render(seed=5)
+    ex = extract_slits(img, stripe_width_px=3.06, dot_size_px=1.9)
+    hp, mask, opened, slope, r, active, ss, length = _steger_setup(img, ex)
+    rad = math.ceil(3.0 * ss) + 1
+    u = ex.u.astype(float)
+    dots = mask > 0
+    # every third point: fewer windows share a run, so a window edge left out would show
+    active &= np.arange(u.size) % 3 == 0
+
+    def refilled(fill_value):
+        slit = hp.copy()
+        slit[dots] = fill_value
+        sl = slope()
+        _refill_dots(hp, mask, opened, sl, slit, u, r, active, rad, length)
+        return slit, sl
+
+    slit, sl = refilled(np.nan)
+    m, ok = _steger_kernel(slit, u, r, active, ss, 1.0)
+    m_big, ok_big = _steger_kernel(refilled(1e30)[0], u, r, active, ss, 1.0)
+    np.testing.assert_array_equal(m_big, m)
+    np.testing.assert_array_equal(ok_big, ok)
+    assert ok[active].mean() > 0.8
+    made = dots & np.isfinite(slit)
+    assert made.sum() > 1000 and (dots & ~made).any()  # refilled near the points only
+    hx, hy = _plain_slope_pass(*sl[:3])
+    qs, cs = np.nonzero(made)
+    pick = np.random.default_rng(0).choice(qs.size, 1500, replace=False)
+    got = slit[qs[pick], cs[pick]]
+    want = [
+        _plain_fill(hp, mask, opened, hx, hy, sl[2], q, c, 2 * length)
+        for q, c in zip(qs[pick], cs[pick], strict=True)
+    ]
+    np.testing.assert_array_equal(got, np.array(want, np.float32))
+
+
+def test_refine_same_in_threads_and_after_other_sizes():
+    """Each thread's reused work arrays: the same results from two threads at once, and
+    after a call on an image of another size, as from one call alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cases = []
+    for seed, kw in ((0, {}), (7, {"h": 200, "w": 257, "n_stripes": 11})):
+        img, _ = render(seed=seed, **kw)
+        ex = extract_slits(img, stripe_width_px=3.06, dot_size_px=1.9)
+        cases.append((img, ex.u, ex.v, ex.segment, ex.stripe_width_px, ex.dot_size_px))
+    alone = [refine_centres(*c) for c in cases]
+    again = [refine_centres(*c) for c in cases[::-1]][::-1]
+    with ThreadPoolExecutor(2) as pool:
+        threads = list(pool.map(lambda c: refine_centres(*c), cases * 3))
+    for got in (again, threads[:2], threads[2:4], threads[4:]):
+        for (u, ok), (u0, ok0) in zip(got, alone, strict=True):
+            np.testing.assert_array_equal(u, u0)
+            np.testing.assert_array_equal(ok, ok0)
+
+
+def test_refill_on_dense_dots_matches_plain_fill():
+    """Dots on half the pixels (more runs than the run list first holds): every dot pixel of
+    the windows is refilled, with the plain fill_dots value."""
+    import cv2
+
+    from multislit.stripes.refine import _SLOPE_BLOCK, _refill_dots
+
+    rng = np.random.default_rng(6)
+    h, w, rad, length = 60, 80, 7, 3
+    hp = rng.normal(0, 20, (h, w)).astype(np.float32)
+    mask = np.where(rng.random((h, w)) < 0.5, 255, 0).astype(np.uint8)
+    opened = hp - np.float32(5)
+    put, pvt = rng.random((w, h), np.float32), rng.normal(0, 0.3, (w, h)).astype(np.float32)
+    g = cv2.getGaussianKernel(9, 2.0, cv2.CV_32F).ravel()
+    state = np.zeros((w, -(-h // _SLOPE_BLOCK)), np.uint8)
+    slope = (put, pvt, g, np.zeros((w, h), np.float32), np.zeros((w, h), np.float32), state)
+    r = np.arange(10, 30)
+    u = rng.uniform(15, 65, r.size)  # windows far apart: few runs shared
+    slit = np.where(mask > 0, np.nan, hp).astype(np.float32)
+    _refill_dots(hp, mask, opened, slope, slit, u, r, np.ones(r.size, bool), rad, length)
+    hx, hy = _plain_slope_pass(put, pvt, g)
+    runs = set()
+    for q, c0 in zip(r, np.floor(u).astype(int), strict=True):
+        for c in range(c0 - 1 - rad, c0 + 2 + rad):
+            if mask[q, c]:
+                want = _plain_fill(hp, mask, opened, hx, hy, g, q, c, 2 * length)
+                assert slit[q, c] == want, (q, c, slit[q, c], want)
+                start = q
+                while start > 0 and mask[start - 1, c]:
+                    start -= 1
+                runs.add((c, start))
+    assert len(runs) > 2 * r.size + 64  # more runs than the first list holds

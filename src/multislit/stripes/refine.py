@@ -33,6 +33,9 @@ REFINE_STEGER_SCALE = 1.25
 _CURVED_ALPHA = 1e-4
 #: Fewest pairs of windows for the noise scale of that test (else degree 1 everywhere).
 _CURVED_MIN_PAIRS = 50
+#: The median of chi2 with 1 degree of freedom, and its upper ``_CURVED_ALPHA`` quantile.
+_CHI2_MEDIAN = float(scipy.stats.chi2.median(1))
+_CHI2_CURVED = float(scipy.stats.chi2.isf(_CURVED_ALPHA, 1))
 
 
 def refine_slit_image(
@@ -182,20 +185,21 @@ def refine_centres(
     # Steger's centres of the points that can take part in a fit (on a segment, not at its end),
     # on the slit image of refine_slit_image, made only in their windows
     length = opening_length(ds)
-    hp, put, pvt, g = _highpass_and_tensor(img, sw, R, length)
+    hp, put, pvt, g, free_t = _highpass_and_tensor(img, sw, R, length)
     active = (seg >= 0) & (inner >= 0)
-    mask, opened = _dot_mask(hp, length, 3.0 * noise_from_difference(img))
-    # work arrays of the compiled kernel: written only where the points' windows need them
+    mask, opened, slit, free = _dot_mask(hp, length, 3.0 * noise_from_difference(img))
+    # work arrays of the compiled kernel (the free arrays above): the slit image, the highpass
+    # off the dots (a streaming copy), the dots refilled only where the points' windows read
+    # them; the slope's Gaussian only where those refills need it
+    np.copyto(slit, hp)
     h_blocks = -(-h // _SLOPE_BLOCK)
-    slope = (put, pvt, g, *(np.empty((w, h), np.float32) for _ in range(2)))
-    slope += (np.zeros((w, h_blocks), np.uint8),)
-    slit, done = np.empty((h, w), np.float32), np.zeros((h, w), bool)
-    m, row_ok = _steger_kernel(
-        hp, mask, opened, slope, slit, done, uu, r, active, ss, length, max_shift_px
-    )
+    slope = (put, pvt, g, free_t, free.reshape(w, h), np.zeros((w, h_blocks), np.uint8))
+    rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
+    _refill_dots(hp, mask, opened, slope, slit, uu, r, active, rad, length)
+    m, row_ok = _steger_kernel(slit, uu, r, active, ss, max_shift_px)
     delta, ok, delta2, gain = _fit_kernel(seg, key, order, pos, skey, inner, m, uu, row_ok, R, deg)
     if deg < 0:
-        delta = _pick_curved(delta, delta2, gain, key, R)
+        delta = _pick_curved(delta, delta2, gain, key, order, R)
     # another stripe within the kernel's reach in the same row: its flank biases the centre
     ok &= _row_gaps_kernel(uu, r, h) >= 3.0 * ss + 2.5 * sigma
     ok &= np.abs(delta) <= max_shift_px
@@ -203,72 +207,69 @@ def refine_centres(
     return out, ok
 
 
-def _pick_curved(delta1: F64, delta2: F64, gain: F64, key: NDArray[np.int64], R: int) -> F64:
+def _pick_curved(
+    delta1: F64, delta2: F64, gain: F64, key: NDArray[np.int64], by_key: NDArray[np.intp], R: int
+) -> F64:
     """The shifts of ``degree="auto"``: ``delta2`` (degree 2) where the difference from
     ``delta1`` (degree 1) is significant against the noise and so is that of a window R rows
     before or after on the segment, with the same sign; else ``delta1``. ``gain`` (K,) is
     var(delta2 - delta1) per unit iid noise (NaN where there is no degree-2 fit); ``key``
-    (K,) the points' segment * span + row of :func:`_segment_rows`; ``R`` the half window."""
-    has = np.flatnonzero(np.isfinite(gain) & (gain > 0))
+    (K,) the points' segment * span + row of :func:`_segment_rows` and ``by_key`` (K,) the
+    stable order that sorts it; ``R`` the half window."""
+    valid = np.isfinite(gain) & (gain > 0)
     d = delta2 - delta1
-    order = has[np.argsort(key[has], kind="stable")]
+    order = by_key[valid[by_key]]  # the points with a gain, sorted by key (stable)
     sk = key[order]
-
-    def partner(off: int) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
-        """Where the window ``off`` rows further on the segment exists, and its point."""
-        j = np.clip(np.searchsorted(sk, sk + off), 0, max(sk.size - 1, 0))
-        return sk[j] == sk + off, order[j]
-
     # pairs of disjoint windows 2 R + 1 rows apart: their difference of d has variance
     # (g_a + g_b) s^2, the curvature they share cancelling
-    pair, b = partner(2 * R + 1)
+    pair, j = _partner_kernel(sk, 2 * R + 1)
     if pair.sum() < _CURVED_MIN_PAIRS:
         return delta1
-    a, b = order[pair], b[pair]
-    s2 = np.median((d[a] - d[b]) ** 2 / (gain[a] + gain[b])) / scipy.stats.chi2.median(1)
-    sig = np.zeros(d.size, bool)
-    sig[has] = d[has] ** 2 > gain[has] * s2 * scipy.stats.chi2.isf(_CURVED_ALPHA, 1)
-    # a surface's curvature goes on along the stripe; one bad row centre flips the sign of d
-    # between windows R rows apart
-    confirmed = np.zeros(order.size, bool)
-    for off in (-R, R):
-        there, nb = partner(off)
-        confirmed |= there & sig[nb] & (np.sign(d[nb]) == np.sign(d[order]))
-    curved = order[sig[order] & confirmed]
-    out = delta1.copy()
-    out[curved] = delta2[curved]
-    return out
+    a, b = order[pair], order[j[pair]]
+    s2 = np.median((d[a] - d[b]) ** 2 / (gain[a] + gain[b])) / _CHI2_MEDIAN
+    return _curved_kernel(order, sk, delta1, delta2, d, gain, s2, _CHI2_CURVED, R)
 
 
-def _highpass_and_tensor(img: NDArray, sw: float, R: int, length: int) -> tuple[F32, F32, F32, F32]:
+def _highpass_and_tensor(
+    img: NDArray, sw: float, R: int, length: int
+) -> tuple[F32, F32, F32, F32, F32]:
     """The highpass of :func:`refine_slit_image` (image minus its row median background
     averaged over 2 R + 1 rows and 2 :func:`median_stride` + 1 columns), (H, W) float32; the
     structure tensor products gu^2 and gu gv of :func:`stripe_slope` on it, transposed (W, H)
-    float32; and the Gaussian (float32) that integrates them."""
+    float32; the Gaussian (float32) that integrates them; and a free (W, H) float32 array."""
+    h, w = img.shape
     stride = median_stride(sw)
     # the median of integer data is exact in its own type; the box mean as cv2.blur's
     bg = row_median_background(img, stride)
     ksize = (2 * stride + 1, 2 * R + 1)
-    bg = cv2.boxFilter(bg, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_REFLECT)
-    hp = cv2.subtract(img, bg, dtype=cv2.CV_32F) if img.dtype != np.float32 else img - bg
+    hp = np.empty((h, w), np.float32)
+    hp = cv2.boxFilter(bg, cv2.CV_32F, ksize, dst=hp, normalize=True, borderType=cv2.BORDER_REFLECT)
+    # the highpass in place of the background
+    if img.dtype != np.float32:
+        hp = cv2.subtract(img, hp, dst=hp, dtype=cv2.CV_32F)
+    else:
+        hp = np.subtract(img, hp, out=hp)
     # the products transposed (W, H): the slope's Gaussian runs along their rows
-    hpt = cv2.transpose(hp)
-    gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, ksize=3)
-    gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, ksize=3)
+    hpt = cv2.transpose(hp, dst=np.empty((w, h), np.float32))
+    gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, dst=np.empty((w, h), np.float32), ksize=3)
+    gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, dst=np.empty((w, h), np.float32), ksize=3)
     sig = slope_sigma(length)
     taps = round(sig * 8 + 1) | 1  # cv2.GaussianBlur's kernel size for float data
     g = cv2.getGaussianKernel(taps, sig, cv2.CV_32F).ravel()
-    return hp, cv2.multiply(gu, gu), cv2.multiply(gu, gv, dst=gv), g
+    pvt = cv2.multiply(gu, gv, dst=gv)
+    return hp, cv2.multiply(gu, gu, dst=gu), pvt, g, hpt
 
 
-def _dot_mask(hp: F32, length: int, tau: float) -> tuple[NDArray[np.uint8], F32]:
+def _dot_mask(hp: F32, length: int, tau: float) -> tuple[NDArray[np.uint8], F32, F32, F32]:
     """The dot mask of :func:`fill_dots` (uint8, 255 on dots) and the opening it is found
-    with, both (H, W)."""
+    with, both (H, W); and two free (H, W) float32 arrays."""
+    shape = hp.shape
     opened = vertical_opening(hp, length)
-    diff = cv2.subtract(hp, opened)
-    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau)
-    mask = cv2.compare(diff, thr, cv2.CMP_GT)
-    return cv2.dilate(mask, np.ones((3, 3), np.uint8)), opened
+    diff = cv2.subtract(hp, opened, dst=np.empty(shape, np.float32))
+    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau, dst=np.empty(shape, np.float32))
+    mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=np.empty(shape, np.uint8))
+    dots = cv2.dilate(mask, np.ones((3, 3), np.uint8), dst=np.empty(shape, np.uint8))
+    return dots, opened, diff, thr
 
 
 def _check_points(
@@ -334,45 +335,53 @@ def _check_options(
 
 # --------------------------------------------------------------------------- compiled kernels
 # The refinement reads the slit image only in the points' Steger windows. The highpass, the
-# structure tensor's products and the dot mask are whole-image passes (OpenCV); the dot refill
-# (a run of dot pixels at a time), the stripe slope it needs (the tensor's Gaussian, by column
-# blocks) and Steger's derivatives are made in compiled loops only where a window reads them,
-# with the values of :func:`refine_slit_image` there (to float32 rounding).
+# structure tensor's products and the dot mask are whole-image passes (OpenCV); the dot
+# refill (a run of dot pixels at a time) and the stripe slope it needs (the tensor's Gaussian:
+# its pass along u column by column, for the blocks of rows around those runs) are made in
+# compiled loops only for the runs the windows can meet, ahead of Steger's derivatives, with
+# the values of :func:`refine_slit_image` there (to float32 rounding).
 
-#: Rows per block of the lazily computed horizontal pass of the slope's Gaussian.
+#: Rows per block of the horizontal pass of the slope's Gaussian (made where needed).
 _SLOPE_BLOCK = 32
 
 
 @njit(cache=True)
+def _slope_rows(put, pvt, g, hx, hy, c, q0, q1):
+    """The Gaussian ``g``'s pass along u (cv2.BORDER_REFLECT_101) of the structure tensor
+    products ``put``, ``pvt`` (W, H) in rows ``q0`` .. ``q1`` - 1 of column ``c``, to ``hx``,
+    ``hy`` (W, H)."""
+    w = put.shape[0]
+    rk = g.size // 2
+    # 1-D views: the inner loops vectorise (the longer the rows, the faster per row)
+    sx = hx[c, q0:q1]
+    sy = hy[c, q0:q1]
+    sx[:] = 0.0
+    sy[:] = 0.0
+    for j in range(-rk, rk + 1):
+        cc = _reflect101(c + j, w)
+        gj = g[j + rk]
+        px = put[cc, q0:q1]
+        py = pvt[cc, q0:q1]
+        for q in range(sx.size):
+            sx[q] += gj * px[q]
+            sy[q] += gj * py[q]
+
+
+@njit(cache=True, inline="always")
 def _slope_at(put, pvt, g, hx, hy, state, mid, c):
     """:func:`stripe_slope` at (``mid``, ``c``): du/dv clipped to +-1, float32, from the
     Gaussian ``g`` (odd length, cv2.BORDER_REFLECT_101) of the structure tensor products
-    gu^2, gu gv, given transposed (W, H) as ``put``, ``pvt``. The Gaussian's pass along u goes
-    to ``hx``, ``hy`` (W, H) per block of rows of column ``c`` when first needed (``state``
-    (W, blocks), 1 where made)."""
+    gu^2, gu gv, given transposed (W, H) as ``put``, ``pvt``. The Gaussian's pass along u is
+    read from ``hx``, ``hy`` (W, H), made by :func:`_slope_rows` for the blocks of rows of
+    column ``c`` not yet made (``state`` (W, blocks), 1 where made)."""
     w, h = put.shape
     rk = g.size // 2
     lo = max(mid - rk, 0)
     hi = min(mid + rk, h - 1)  # reflected rows near the borders fall inside lo .. hi
     for b in range(lo // _SLOPE_BLOCK, hi // _SLOPE_BLOCK + 1):
-        if state[c, b]:
-            continue
-        q0 = b * _SLOPE_BLOCK
-        q1 = min(q0 + _SLOPE_BLOCK, h)
-        # 1-D views: the inner loops vectorise
-        sx = hx[c, q0:q1]
-        sy = hy[c, q0:q1]
-        sx[:] = 0.0
-        sy[:] = 0.0
-        for j in range(-rk, rk + 1):
-            cc = _reflect101(c + j, w)
-            gj = g[j + rk]
-            px = put[cc, q0:q1]
-            py = pvt[cc, q0:q1]
-            for q in range(sx.size):
-                sx[q] += gj * px[q]
-                sy[q] += gj * py[q]
-        state[c, b] = 1
+        if not state[c, b]:
+            _slope_rows(put, pvt, g, hx, hy, c, b * _SLOPE_BLOCK, min((b + 1) * _SLOPE_BLOCK, h))
+            state[c, b] = 1
     juu = np.float32(0.0)
     juv = np.float32(0.0)
     if mid - rk >= 0 and mid + rk < h:
@@ -390,7 +399,22 @@ def _slope_at(put, pvt, g, hx, hy, state, mid, c):
     return min(max(s, np.float32(-1.0)), np.float32(1.0))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _run_bounds(mask, r, c, lim):
+    """The run of dot pixels (``mask`` non-zero) through (r, c) in column c: rows start ..
+    stop - 1, followed at most ``lim`` + 1 rows from r up and from start down (a longer run
+    comes out longer than ``lim``)."""
+    h = mask.shape[0]
+    start = r
+    while start > 0 and r - start <= lim and mask[start - 1, c]:
+        start -= 1
+    stop = r + 1
+    while stop < h and stop - start <= lim and mask[stop, c]:
+        stop += 1
+    return start, stop
+
+
+@njit(cache=True, inline="always")
 def _row_sample(hp: F32, r: int, x: float) -> np.float32:
     """``hp`` interpolated linearly along row ``r`` at column ``x`` (as :func:`fill_dots`)."""
     w = hp.shape[1]
@@ -402,25 +426,18 @@ def _row_sample(hp: F32, r: int, x: float) -> np.float32:
     return np.float32(a + np.float32(np.float32(b - a) * f))
 
 
-@njit(cache=True)
-def _fill_column_run(hp, mask, opened, slope, slit, done, r, c, length):
-    """:func:`fill_dots` for the run of dot pixels through (r, c) in column c: each pixel
-    interpolated along the local stripe slope (``slope``: the arrays of :func:`_slope_at`)
-    between the clean pixels above and below the run, or the opening where the run is longer
-    than 2 ``length`` or touches the image border; written to ``slit``, marked in ``done``."""
+@njit(cache=True, inline="always")
+def _fill_run(hp, opened, slope, slit, start, stop, c, lim):
+    """:func:`fill_dots` for the run of dot pixels in rows ``start`` .. ``stop`` - 1 of column
+    ``c`` (as :func:`_run_bounds` finds it): each pixel interpolated along the local stripe
+    slope (``slope``: the arrays of :func:`_slope_at`) between the clean pixels above and
+    below the run, or the opening where the run is longer than ``lim`` or touches the image
+    border; written to ``slit``."""
     h = hp.shape[0]
-    lim = 2 * length
-    start = r
-    while start > 0 and r - start <= lim and mask[start - 1, c]:
-        start -= 1
-    stop = r + 1
-    while stop < h and stop - start <= lim and mask[stop, c]:
-        stop += 1
     n = stop - start
-    if start == 0 or stop == h or n > lim:  # all of these pixels lie in that one run
+    if start == 0 or stop == h or n > lim:
         for q in range(start, stop):
             slit[q, c] = opened[q, c]
-            done[q, c] = True
         return
     put, pvt, g, hx, hy, state = slope
     s = _slope_at(put, pvt, g, hx, hy, state, start + n // 2, c)
@@ -431,17 +448,77 @@ def _fill_column_run(hp, mask, opened, slope, slit, done, r, c, length):
         frac = t / float(np.float32(n + 1))
         val = float(above) + float(np.float32(below - above)) * frac
         slit[q, c] = np.float32(min(val, float(hp[q, c])))
-        done[q, c] = True
 
 
 @njit(cache=True)
-def _steger_kernel(hp, mask, opened, slope, slit, done, u, r, active, ss, length, max_shift):
+def _refill_dots(hp, mask, opened, slope, slit, u, r, active, rad, length):
+    """The dot pixels (``mask`` non-zero) that :func:`_steger_kernel` can read refilled in
+    ``slit`` (H, W) float32: every run of dot pixels met in columns floor(u) - 1 - ``rad`` ..
+    floor(u) + 1 + ``rad`` of the ``active`` points' rows (the Newton steps move by at most
+    1 px before the last evaluation), by :func:`_fill_run`. First the runs are found, in the
+    points' order (row by row), and the slope Gaussian's pass along u is made, column by
+    column in runs of blocks (:func:`_slope_rows` is fastest on long runs), around the middle
+    of each run; then the runs are refilled. ``slope``: the arrays of :func:`_slope_at`."""
+    put, pvt, g, hx, hy, state = slope
+    h, w = mask.shape
+    rk = g.size // 2
+    lim = 2 * length
+    need = np.zeros(state.shape, np.uint8)
+    seen_start = np.full(w, -1)  # the last run found per column (rows start .. stop - 1)
+    seen_stop = np.full(w, -1)
+    runs = np.empty((2 * u.size + 64, 3), np.int32)  # (column, start, stop) of the runs found
+    n_runs = 0
+    for i in range(u.size):
+        if not active[i]:
+            continue
+        ri = r[i]
+        c0 = int(math.floor(min(max(u[i], 0.0), w - 1.0)))
+        for cc in range(max(c0 - 1 - rad, 0), min(c0 + 1 + rad, w - 1) + 1):
+            if not mask[ri, cc] or seen_start[cc] <= ri < seen_stop[cc]:
+                continue
+            start, stop = _run_bounds(mask, ri, cc, lim)
+            seen_start[cc] = start
+            seen_stop[cc] = stop
+            if n_runs == runs.shape[0]:
+                more = np.empty((2 * n_runs, 3), np.int32)
+                more[:n_runs] = runs
+                runs = more
+            runs[n_runs, 0] = cc
+            runs[n_runs, 1] = start
+            runs[n_runs, 2] = stop
+            n_runs += 1
+            n = stop - start
+            if start == 0 or stop == h or n > lim:
+                continue
+            mid = start + n // 2
+            lo = max(mid - rk, 0)
+            hi = min(mid + rk, h - 1)
+            for b in range(lo // _SLOPE_BLOCK, hi // _SLOPE_BLOCK + 1):
+                need[cc, b] = 1
+    nb = state.shape[1]
+    for c in range(w):
+        b = 0
+        while b < nb:
+            if not need[c, b] or state[c, b]:
+                b += 1
+                continue
+            e = b
+            while e < nb and need[c, e] and not state[c, e]:
+                state[c, e] = 1
+                e += 1
+            _slope_rows(put, pvt, g, hx, hy, c, b * _SLOPE_BLOCK, min(e * _SLOPE_BLOCK, h))
+            b = e
+    # in the order found: row by row, as the memory lies
+    for j in range(n_runs):
+        _fill_run(hp, opened, slope, slit, runs[j, 1], runs[j, 2], runs[j, 0], lim)
+
+
+@njit(cache=True)
+def _steger_kernel(slit, u, r, active, ss, max_shift):
     """Steger's centres (K,) px and where they are usable, by two Newton steps from ``u`` on
-    the slit image (``hp`` with the pixels of ``mask`` refilled), for the ``active`` points
-    (the others keep ``u``, not usable). The slit image goes to ``slit`` (H, W) float32 only
-    where a window reads it (marked in ``done``, (H, W) bool, all False on entry); ``slope``:
-    the arrays of :func:`_slope_at`."""
-    h, w = hp.shape
+    the slit image ``slit`` (H, W) float32 (the dots that the steps can read refilled by
+    :func:`_refill_dots`), for the ``active`` points (the others keep ``u``, not usable)."""
+    h, w = slit.shape
     K = u.size
     rad = int(math.ceil(3.0 * ss)) + 1
     inv2 = 1.0 / (ss * ss)
@@ -468,14 +545,7 @@ def _steger_kernel(hp, mask, opened, slope, slit, done, u, r, active, ss, length
             d1 = 0.0
             d2 = 0.0
             for k in range(-rad, rad + 1):
-                cc = min(max(c0 + k, 0), w - 1)
-                if not done[ri, cc]:
-                    if mask[ri, cc]:
-                        _fill_column_run(hp, mask, opened, slope, slit, done, ri, cc, length)
-                    else:
-                        slit[ri, cc] = hp[ri, cc]
-                        done[ri, cc] = True
-                p = float(slit[ri, cc])
+                p = float(slit[ri, min(max(c0 + k, 0), w - 1)])
                 t = f + k
                 g = ek * gk[k + rad]
                 ek *= e
@@ -497,9 +567,31 @@ def _segment_rows(seg, r, span, end):
     point lies inside its segment beyond ``end`` rows from either end (K,)."""
     K = seg.size
     key = np.empty(K, np.int64)
+    top = -1
+    bottom = -1
     for i in range(K):
         key[i] = seg[i] * span + r[i] if seg[i] >= 0 else -1
-    order = np.argsort(key, kind="mergesort")
+        top = max(top, seg[i])
+        bottom = min(bottom, seg[i])
+    order = np.empty(K, np.intp)
+    ordered = bottom == -1 and top <= 2 * K  # segment ids -1 .. a few per point
+    if ordered:
+        # the points come in row order (as from the extraction): a stable counting sort by
+        # segment sorts the keys, found by checking them; else the merge sort
+        start = np.zeros(top + 3, np.intp)
+        for i in range(K):
+            start[seg[i] + 2] += 1
+        for b in range(1, top + 3):
+            start[b] += start[b - 1]
+        for i in range(K):
+            order[start[seg[i] + 1]] = i
+            start[seg[i] + 1] += 1
+        for j in range(1, K):
+            if key[order[j]] < key[order[j - 1]]:
+                ordered = False
+                break
+    if not ordered:
+        order = np.argsort(key, kind="mergesort")
     pos = np.empty(K, np.intp)
     skey = np.empty(K, np.int64)
     for j in range(K):
@@ -533,73 +625,121 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
     gain = np.full(K, np.nan)
     ok = np.zeros(K, np.bool_)
     need = min(3 if auto else deg + 2, 2 * R + 1)
-    mom = np.zeros(2 * n - 1)
-    rhs = np.zeros(n)
     for i in range(K):
         reach = min(inner[i], R)
         if seg[i] < 0 or inner[i] < 0 or reach < R // 2:
             continue
-        mom[:] = 0.0
-        rhs[:] = 0.0
+        # the normal equations' moments sum(dv^k) (integers, exact) and right-hand sides
+        # sum((m - u) dv^k), in order of dv
+        m0 = m1 = m2 = m3 = m4 = 0.0
+        r0 = r1 = r2 = 0.0
         count = 0
-        p = pos[i]
-        for dv in range(-R, R + 1):
-            if abs(dv) > reach:
-                continue
+        # leftmost sorted position with skey >= key + dv (np.searchsorted), walked back from
+        # the point's own position for dv = -reach, then forward as dv grows
+        q = pos[i]
+        while q > 0 and skey[q - 1] >= key[i] - reach:
+            q -= 1
+        for dv in range(-reach, reach + 1):
             target = key[i] + dv
-            # leftmost sorted position with skey >= target (np.searchsorted), walked from p
-            q = p
-            if dv > 0:
-                while q < K and skey[q] < target:
-                    q += 1
-            else:
-                while q > 0 and skey[q - 1] >= target:
-                    q -= 1
-            q = min(q, K - 1)
-            if skey[q] != target:
+            while q < K and skey[q] < target:
+                q += 1
+            if q == K or skey[q] != target:
                 continue
             nb = order[q]
             if not row_ok[nb] or inner[nb] < 0:
                 continue
             count += 1
-            pw = 1.0
-            for k in range(2 * n - 1):
-                mom[k] += pw
-                if k < n:
-                    rhs[k] += (m[nb] - u[i]) * pw
-                pw *= dv
+            e = m[nb] - u[i]
+            fv = float(dv)
+            f2 = fv * fv
+            m0 += 1.0
+            r0 += e
+            if n >= 2:
+                m1 += fv
+                m2 += f2
+                r1 += e * fv
+            if n >= 3:
+                m3 += f2 * fv
+                m4 += f2 * f2
+                r2 += e * f2
         if count < need:
             continue
         if n == 1:
-            det = mom[0]
-            if abs(det) > 1e-9 * max(mom[0], 1.0):
-                delta[i] = rhs[0] / det
+            det = m0
+            if abs(det) > 1e-9 * max(m0, 1.0):
+                delta[i] = r0 / det
                 ok[i] = True
             continue
-        det = mom[0] * mom[2] - mom[1] * mom[1]
-        line = abs(det) > 1e-9 * max(mom[0], 1.0) ** 2
+        det = m0 * m2 - m1 * m1
+        line = abs(det) > 1e-9 * max(m0, 1.0) ** 2
         if n == 2 or auto:
             if line:
-                delta[i] = (rhs[0] * mom[2] - mom[1] * rhs[1]) / det
+                delta[i] = (r0 * m2 - m1 * r1) / det
                 ok[i] = True
             if n == 2 or not line or count < 4:
                 continue
-        # the normal matrix's first row of cofactors (it is symmetric, Hankel in mom)
-        c0 = mom[2] * mom[4] - mom[3] * mom[3]
-        c1 = mom[2] * mom[3] - mom[1] * mom[4]
-        c2 = mom[1] * mom[3] - mom[2] * mom[2]
-        det3 = mom[0] * c0 + mom[1] * c1 + mom[2] * c2
-        if abs(det3) <= 1e-9 * max(mom[0], 1.0) ** 3:
+        # the normal matrix's first row of cofactors (it is symmetric, Hankel in the moments)
+        c0 = m2 * m4 - m3 * m3
+        c1 = m2 * m3 - m1 * m4
+        c2 = m1 * m3 - m2 * m2
+        det3 = m0 * c0 + m1 * c1 + m2 * c2
+        if abs(det3) <= 1e-9 * max(m0, 1.0) ** 3:
             continue
-        d2 = (c0 * rhs[0] + c1 * rhs[1] + c2 * rhs[2]) / det3
+        d2 = (c0 * r0 + c1 * r1 + c2 * r2) / det3
         if auto:
             delta2[i] = d2
             # var(shift2) - var(shift1) for unit noise: (A3^-1)_00 - (A2^-1)_00
-            gain[i] = c0 / det3 - mom[2] / det
+            gain[i] = c0 / det3 - m2 / det
         else:
             delta[i] = d2
             ok[i] = True
     return delta, ok, delta2, gain
+
+
+@njit(cache=True)
+def _partner_kernel(sk, off):
+    """For sorted keys ``sk`` (n,): where ``sk + off`` occurs in ``sk`` (n,) bool, and the
+    position np.searchsorted(sk, sk + off) clipped to 0 .. n - 1 (n,), by one merge walk."""
+    n = sk.size
+    there = np.zeros(n, np.bool_)
+    j = np.zeros(n, np.intp)
+    q = 0
+    for i in range(n):
+        t = sk[i] + off  # non-decreasing in i
+        while q < n and sk[q] < t:
+            q += 1
+        jj = min(q, n - 1)
+        j[i] = jj
+        there[i] = sk[jj] == t
+    return there, j
+
+
+@njit(cache=True)
+def _curved_kernel(order, sk, delta1, delta2, d, gain, s2, level, R):
+    """The end of :func:`_pick_curved`: ``delta2`` where d = ``delta2`` - ``delta1`` is
+    significant, d^2 > ``gain`` ``s2`` ``level``, and so is d, with the same sign, in the window
+    R rows before or after on the segment; else ``delta1`` (K,). ``order`` (n,): the points
+    with a gain sorted by key, ``sk`` (n,) their keys."""
+    n = order.size
+    sig = np.zeros(d.size, np.bool_)
+    for t in range(n):
+        i = order[t]
+        sig[i] = d[i] * d[i] > gain[i] * s2 * level
+    # a surface's curvature goes on along the stripe; one bad row centre flips the sign of d
+    # between windows R rows apart
+    confirmed = np.zeros(n, np.bool_)
+    for off in (-R, R):
+        there, j = _partner_kernel(sk, off)
+        for t in range(n):
+            nb = order[j[t]]
+            if there[t] and sig[nb] and np.sign(d[nb]) == np.sign(d[order[t]]):
+                confirmed[t] = True
+    out = delta1.copy()
+    for t in range(n):
+        i = order[t]
+        if sig[i] and confirmed[t]:
+            out[i] = delta2[i]
+    return out
 
 
 @njit(cache=True)
