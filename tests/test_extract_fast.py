@@ -24,12 +24,20 @@ from multislit.stripes import (
 )
 from multislit.stripes.centres import _gather, _row_maxima
 from multislit.stripes.separation import (
+    _at_least,
+    _blur_is_opencvs,
     _running_extreme,
+    _slopes_at,
+    _tensor_at,
+    clip_level,
     fill_dots,
     mask_runs,
     noise_from_difference,
+    quantisation_step,
+    separate_validated,
+    slope_sigma,
 )
-from multislit.stripes.sizes import _best_scale, ridge_contrast
+from multislit.stripes.sizes import _best_scale, opening_length, ridge_contrast
 
 DTYPES = (np.uint8, np.uint16, np.float32)
 
@@ -271,3 +279,113 @@ def test_vertical_opening_matches_running_extremes(dtype):
             got = vertical_opening(x, length)
             assert got.dtype == x.dtype
             np.testing.assert_array_equal(got, ref)
+
+
+def _slope_ref(hp, sigma):
+    """The stripe slope of the whole image: the structure tensor by cv2.Sobel and
+    cv2.GaussianBlur over every pixel."""
+    gu = cv2.Sobel(hp, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(hp, cv2.CV_32F, 0, 1, ksize=3)
+    juu = cv2.GaussianBlur(gu * gu, (0, 0), sigma)
+    juv = cv2.GaussianBlur(gu * gv, (0, 0), sigma)
+    return np.clip(-juv / np.maximum(juu, np.float32(1e-6)), np.float32(-1.0), np.float32(1.0))
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_slopes_at_points_equal_whole_image_structure_tensor(dtype):
+    rng = np.random.default_rng(13)
+    shapes = ((37, 48), (29, 45), (70, 61), (12, 1), (1, 9), (5, 3), (40, 203))
+    for h, w in shapes:
+        hp = _image(rng, dtype, h, w)
+        for sigma in (1.5, 2.5, 4.5):
+            ref = _slope_ref(hp, sigma)
+            k = min(h * w, 300)
+            flat = rng.choice(h * w, size=k, replace=False)
+            mids, cols = np.divmod(flat, w)
+            got = _slopes_at(hp, sigma, mids, cols)
+            assert got.dtype == np.float32
+            np.testing.assert_array_equal(got, ref[mids, cols])
+        # every pixel, in any order, with repeats
+        mids, cols = (a.ravel() for a in np.indices((h, w)))
+        order = rng.permutation(np.r_[np.arange(h * w), np.arange(h * w)[: h * w // 3]])
+        np.testing.assert_array_equal(
+            _slopes_at(hp, 2.5, mids[order], cols[order]), _slope_ref(hp, 2.5)[mids, cols][order]
+        )
+    assert (
+        _slopes_at(_image(rng, dtype, 9, 9), 2.5, np.empty(0, np.intp), np.empty(0, np.intp)).size
+        == 0
+    )
+
+
+def test_tensor_kernel_reproduces_opencv_gaussian():
+    """The compiled Gaussian at points gives cv2.GaussianBlur's float32 values bit for bit,
+    on widths that reach OpenCV's vector loops and its scalar tail, near every border."""
+    if not _blur_is_opencvs():
+        pytest.skip("this OpenCV build rounds its Gaussian otherwise: cv2.GaussianBlur is used")
+    rng = np.random.default_rng(14)
+    for h, w, sigma in ((50, 77, 3.5), (8, 1280, 4.5), (61, 13, 1.5), (2, 40, 2.5)):
+        x = rng.normal(0.0, 500.0, (h, w)).astype(np.float32)
+        y = rng.normal(0.0, 50.0, (h, w)).astype(np.float32)
+        mids, cols = (a.ravel() for a in np.indices((h, w)))
+        taps = cv2.getGaussianKernel(round(sigma * 8 + 1) | 1, sigma, cv2.CV_32F).ravel()
+        juu, juv = _tensor_at(x, x, y, taps, mids, cols)
+        np.testing.assert_array_equal(juu, cv2.GaussianBlur(x * x, (0, 0), sigma).ravel())
+        np.testing.assert_array_equal(juv, cv2.GaussianBlur(x * y, (0, 0), sigma).ravel())
+
+
+def _clip_level_ref(img, step):
+    """clip_level by a boolean selection, np.rint and np.bincount."""
+    top = float(img.max())
+    x = img[img >= top - (64 - 0.5) * step].astype(np.float64)
+    k = np.minimum(np.rint((top - x) / step).astype(np.intp), 63)
+    counts = np.bincount(k, minlength=64)
+    tail = float(np.median(counts[16:]))
+    if counts[0] < max(20, 4.0 * tail):
+        return None
+    excess = 2.0 * tail + 3.0 * math.sqrt(tail) + 2.0
+    j = 0
+    while j + 1 < 12 and counts[j + 1] > excess:
+        j += 1
+    return top - j * step
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_clip_level_matches_selection_and_bincount(dtype):
+    rng = np.random.default_rng(15)
+    scale = 1.0 if dtype == np.float32 else 250.0
+    levels = 0
+    for k in range(12):
+        img = (rng.random((40, 57)) ** (0.2 + 0.1 * k) * scale).astype(dtype)
+        img[: 2 + k, :20] = img.max()  # a pile-up at the top (a clip), or too few pixels
+        if dtype == np.uint16:
+            img <<= 4
+        for step in (quantisation_step(img), 1.0, 0.37, 3.0 / (k + 1)):
+            got = clip_level(img, step)
+            assert got == _clip_level_ref(img, step)
+            levels += got is not None
+    assert levels > 0
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_saturation_compare_in_image_type_equals_float_compare(dtype):
+    rng = np.random.default_rng(16)
+    top = 1.0 if dtype == np.float32 else float(np.iinfo(dtype).max)
+    img = (rng.random((30, 41)) * top).astype(dtype)
+    for level in (-3.0, 0.0, 0.5, 17.2, top - 0.5, top, top + 0.5, 2 * top + 9, np.inf, np.nan):
+        np.testing.assert_array_equal(_at_least(img, level), img >= level)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_slit_image_equals_refill_with_whole_image_slope(dtype):
+    """The extraction's slit image (the slope only at the runs that need it) is fill_dots with
+    the whole image's stripe slope."""
+    rng = np.random.default_rng(17)
+    for h, w, ds in ((64, 80, 1.5), (57, 45, 2.1)):
+        img = _image(rng, dtype, h, w)
+        hp, slits, _, noise = separate_validated(img, 3.0, ds, None)
+        length = opening_length(ds)
+        slope = stripe_slope(hp, slope_sigma(length))
+        ref = fill_dots(hp, vertical_opening(hp, length), 3.0 * noise, length, slope)
+        assert slits.dtype == hp.dtype
+        assert np.any(slits != hp)  # dots were refilled
+        np.testing.assert_array_equal(slits, ref)

@@ -8,6 +8,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.numbers import trailing_zeros
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.separation import mask_runs, quantisation_step
@@ -112,26 +113,36 @@ def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 
 def _row_maxima(s, thr, near, use_near):
     """Rows and columns (K,) of the pixels of ``s`` (H, W) greater than their left and not
     less than their right neighbour and than ``thr`` (float64, compared exactly), outside
-    ``near`` (H, W) where ``use_near``; row-major. Two compiled passes (count, then fill)."""
+    ``near`` (H, W) where ``use_near``; row-major. One compiled pass: each row's tests into a
+    byte per pixel (no branches: the loop vectorises), read 8 bytes at a time."""
     h, w = s.shape
-    rr = np.empty(0, np.intp)
-    cc = np.empty(0, np.intp)
-    for fill in range(2):
-        k = 0
-        for r in range(h):
-            row = s[r]
-            for c in range(1, w - 1):
-                m = row[c]
-                if float(m) > thr and m > row[c - 1] and m >= row[c + 1]:
-                    if not (use_near and near[r, c]):
-                        if fill:
-                            rr[k] = r
-                            cc[k] = c
-                        k += 1
-        if not fill:
-            rr = np.empty(k, np.intp)
-            cc = np.empty(k, np.intp)
-    return rr, cc
+    nw = (w + 7) // 8
+    flags = np.zeros(8 * nw, np.uint8)
+    words = flags.view(np.uint64)
+    # two maxima are never side by side: at most w // 2 + 1 a row (pages never written are
+    # never touched)
+    rr = np.empty(h * (w // 2 + 1), np.intp)
+    cc = np.empty(rr.size, np.intp)
+    k = 0
+    zero = np.uint64(0)
+    byte = np.uint64(0xFF)
+    for r in range(h):
+        row = s[r]
+        for c in range(1, w - 1):
+            m = row[c]
+            flags[c] = (float(m) > thr) & (m > row[c - 1]) & (m >= row[c + 1])
+        for blk in range(nw):
+            x = words[blk]
+            while x != zero:
+                bit = trailing_zeros(x) & 56
+                x &= ~(byte << np.uint64(bit))
+                c = blk * 8 + bit // 8
+                if use_near and near[r, c]:
+                    continue
+                rr[k] = r
+                cc[k] = c
+                k += 1
+    return rr[:k].copy(), cc[:k].copy()
 
 
 def _three_point(a: F64, b: F64, c: F64, method: str) -> tuple[F64, F64]:

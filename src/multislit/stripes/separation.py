@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.cpython.unsafe.numbers import trailing_zeros
+from numba.extending import intrinsic
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.sizes import (
@@ -229,6 +233,22 @@ def quantisation_step(img: NDArray) -> float:
     return max(float(np.min(np.diff(vals.astype(np.float64)))), floor)
 
 
+@njit(cache=True)
+def _top_counts(img, first, top, step, bins):
+    """Histogram (``bins``,) int64 of the pixels of ``img`` (H, W) from ``first`` (in the
+    image's type: the least value within ``bins`` - 0.5 quantisation ``step``s of ``top``) up,
+    by steps below ``top`` (rounded; the last bin takes the rest): one pass, no copies."""
+    counts = np.zeros(bins, np.int64)
+    h, w = img.shape
+    for r in range(h):
+        row = img[r]
+        for c in range(w):
+            if row[c] >= first:
+                k = int(np.rint((top - float(row[c])) / step))
+                counts[min(k, bins - 1)] += 1
+    return counts
+
+
 def clip_level(img: NDArray, step: float) -> float | None:
     """The level at which ``img`` clips, read from the data; None if nothing clips.
 
@@ -242,9 +262,16 @@ def clip_level(img: NDArray, step: float) -> float | None:
     step : quantisation step of ``img`` (:func:`quantisation_step`)
     """
     top = float(img.max())
-    x = img[img >= top - (_CLIP_BINS - 0.5) * step].astype(np.float64)
-    k = np.minimum(np.rint((top - x) / step).astype(np.intp), _CLIP_BINS - 1)
-    counts = np.bincount(k, minlength=_CLIP_BINS)
+    lo = top - (_CLIP_BINS - 0.5) * step
+    if np.issubdtype(img.dtype, np.integer):
+        first = img.dtype.type(max(math.ceil(lo), 0))  # <= top
+    elif img.dtype == np.float32:  # the least float32 >= lo
+        first = np.float32(lo)
+        if float(first) < lo:
+            first = np.nextafter(first, np.float32(np.inf))
+    else:
+        first = img.dtype.type(lo)
+    counts = _top_counts(img, first, top, float(step), _CLIP_BINS)
     tail = float(np.median(counts[_CLIP_TAIL:]))
     if counts[0] < max(_MIN_CLIP_PIXELS, _CLIP_EXCESS * tail):
         return None
@@ -308,89 +335,446 @@ def stripe_slope(hp: NDArray, sigma: float) -> NDArray[np.float32]:
     return np.clip(s, -1.0, 1.0)
 
 
-@njit(cache=True)
-def _row_interp(row: NDArray, u: float) -> np.float32:
-    """``row`` (W,) interpolated linearly at column ``u`` (clamped to the row), in float32."""
-    w = row.size
+@njit(cache=True, inline="always")
+def _row_interp(img: NDArray, r: int, u: float) -> np.float32:
+    """Row ``r`` of ``img`` (H, W) interpolated linearly at column ``u`` (clamped to the
+    row), in float32."""
+    w = img.shape[1]
     u = min(max(u, 0.0), w - 1.0)
     u0 = min(int(u), w - 2) if w > 1 else 0  # u >= 0: int() is the floor
     f = np.float32(u - u0)
-    a = np.float32(row[u0])
-    b = np.float32(row[min(u0 + 1, w - 1)])
+    a = np.float32(img[r, u0])
+    b = np.float32(img[r, min(u0 + 1, w - 1)])
     return np.float32(a + np.float32(np.float32(b - a) * f))
 
 
-@njit(cache=True, inline="always")
-def _fill_run(hp, opened, slope_a, slope_b, mode, rint, out, start, stop, c, lim):
-    """:func:`fill_dots` for the run of mask pixels ``start`` .. ``stop - 1`` of column ``c``
-    (``mode``: 0 no slope, 1 ``slope_a`` is the slope image, 2 ``slope_a``, ``slope_b`` are
-    J_uu, J_uv of :func:`_structure_tensor`; ``rint``: round, for integer images)."""
-    h = hp.shape[0]
-    n = stop - start
-    if start == 0 or stop == h or n > lim:  # the opening, as the fallback
-        for q in range(start, stop):
-            out[q, c] = opened[q, c]
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """``a * b + c`` in float32 rounded once (LLVM's fma: the CPU's fused multiply-add)."""
+    sig = types.float32(types.float32, types.float32, types.float32)
+
+    def codegen(context, builder, signature, args):
+        f32 = ir.FloatType()
+        fn = builder.module.declare_intrinsic("llvm.fma", [f32], ir.FunctionType(f32, [f32] * 3))
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+# The slope's Gaussian, as cv2.GaussianBlur computes it on float32 data (OpenCV's separable
+# filter): a pass along each row, the taps summed in order from the first, then a pass along
+# each column, the centre tap first and then the pairs of rows symmetric about it; each step a
+# multiply-add rounded to float32. OpenCV's vector loops fuse the multiply and the add (one
+# rounding) and its scalar tail does not: the columns below ``_ROW_FUSED_LANES * (W //
+# _ROW_FUSED_LANES)`` are fused in the row pass, those below ``_COL_FUSED_LANES * (W //
+# _COL_FUSED_LANES)`` in the column pass (its AVX2 build). A dimension of 1 px is not
+# filtered. :func:`_blur_is_opencvs` checks this against cv2.GaussianBlur once per process.
+_ROW_FUSED_LANES = 4
+_COL_FUSED_LANES = 8
+#: Columns per block of the row pass's bookkeeping (which rows of which columns to make).
+_TENSOR_BLOCK = 8
+
+
+@njit(cache=True)
+def _row_pass(pu, pv, g, ou, ov, c0, c1, fused):
+    """Row pass of the Gaussian ``g`` for columns ``c0`` .. ``c1 - 1`` of one row: ``ou``,
+    ``ov`` (W,) from the padded rows of products ``pu``, ``pv`` (W + len(g) - 1,); ``fused``:
+    one rounding per tap (see ``_ROW_FUSED_LANES``), else a product and a sum. (Unsigned
+    indices: no wraparound test, no views; the loops over columns vectorise.)"""
+    if c1 <= c0:
         return
-    den = float(np.float32(n + 1))
-    if mode == 0:  # straight above and below
-        above = np.float32(hp[start - 1, c])
-        below = np.float32(hp[stop, c])
+    for c in range(c0, c1):
+        ou[np.uint64(c)] = 0.0
+        ov[np.uint64(c)] = 0.0
+    j = 0
+    if fused:
+        # eight taps per sweep, still summed in order (each column's sum is one chain of
+        # fused multiply-adds): one load and store of the sums per eight taps
+        while j + 8 <= g.size:
+            g0, g1, g2, g3 = g[j], g[j + 1], g[j + 2], g[j + 3]
+            g4, g5, g6, g7 = g[j + 4], g[j + 5], g[j + 6], g[j + 7]
+            for c in range(c0, c1):
+                q = np.uint64(c)
+                x = np.uint64(c + j)
+                a = _fma32(pu[x], g0, ou[q])
+                a = _fma32(pu[x + np.uint64(1)], g1, a)
+                a = _fma32(pu[x + np.uint64(2)], g2, a)
+                a = _fma32(pu[x + np.uint64(3)], g3, a)
+                a = _fma32(pu[x + np.uint64(4)], g4, a)
+                a = _fma32(pu[x + np.uint64(5)], g5, a)
+                a = _fma32(pu[x + np.uint64(6)], g6, a)
+                ou[q] = _fma32(pu[x + np.uint64(7)], g7, a)
+                b = _fma32(pv[x], g0, ov[q])
+                b = _fma32(pv[x + np.uint64(1)], g1, b)
+                b = _fma32(pv[x + np.uint64(2)], g2, b)
+                b = _fma32(pv[x + np.uint64(3)], g3, b)
+                b = _fma32(pv[x + np.uint64(4)], g4, b)
+                b = _fma32(pv[x + np.uint64(5)], g5, b)
+                b = _fma32(pv[x + np.uint64(6)], g6, b)
+                ov[q] = _fma32(pv[x + np.uint64(7)], g7, b)
+            j += 8
+    while j < g.size:
+        gj = g[j]
+        if fused:
+            for c in range(c0, c1):
+                q = np.uint64(c)
+                x = np.uint64(c + j)
+                ou[q] = _fma32(pu[x], gj, ou[q])
+                ov[q] = _fma32(pv[x], gj, ov[q])
+        else:
+            for c in range(c0, c1):
+                q = np.uint64(c)
+                x = np.uint64(c + j)
+                ou[q] = ou[q] + pu[x] * gj
+                ov[q] = ov[q] + pv[x] * gj
+        j += 1
+
+
+@njit(cache=True)
+def _column_pass(ru, rv, g, m, c, h, fused):
+    """Column pass of the Gaussian ``g`` at row ``m``, column ``c`` of an ``h``-row image from
+    the row pass's rows ``ru``, ``rv`` (rows, W), kept in a ring (image row q in ring row
+    q mod rows) that holds rows m - len(g) // 2 .. m + len(g) // 2 (reflected at the image
+    border); ``fused`` as in :func:`_row_pass`. Returns J_uu, J_uv (float32)."""
+    nr = ru.shape[0]
+    rk = g.size // 2
+    sm = m % nr
+    su = ru[sm, c] * g[rk]
+    sv = rv[sm, c] * g[rk]
+    for j in range(1, rk + 1):
+        a = _reflect101(m + j, h) % nr
+        b = _reflect101(m - j, h) % nr
+        gj = g[rk + j]
+        if fused:
+            su = _fma32(ru[a, c] + ru[b, c], gj, su)
+            sv = _fma32(rv[a, c] + rv[b, c], gj, sv)
+        else:
+            su = su + (ru[a, c] + ru[b, c]) * gj
+            sv = sv + (rv[a, c] + rv[b, c]) * gj
+    return su, sv
+
+
+@njit(cache=True)
+def _column_points(ru, rv, g, sm, pc, pf, su, sv, n):
+    """:func:`_column_pass` at the columns ``pc[:n]`` (uint64) of a row m whose rows
+    m - len(g) // 2 .. m + len(g) // 2 all lie in the image (m in ring row ``sm``), into
+    ``su``, ``sv``; ``pf``: fused (see :func:`_row_pass`) at each. The points advance
+    together, one tap at a time: independent sums, no wait on each other's roundings."""
+    nr, w = ru.shape
+    fu = ru.ravel()
+    fv = rv.ravel()
+    rk = g.size // 2
+    gc = g[rk]
+    om = np.uint64(sm * w)
+    all_fused = True
+    for p in range(n):
+        all_fused &= pf[p]
+        su[p] = fu[om + pc[p]] * gc
+        sv[p] = fv[om + pc[p]] * gc
+    a = sm
+    b = sm
+    for j in range(1, rk + 1):
+        a = a + 1 if a + 1 < nr else 0  # the ring rows of m + j and m - j
+        b = b - 1 if b > 0 else nr - 1
+        gj = g[rk + j]
+        oa = np.uint64(a * w)
+        ob = np.uint64(b * w)
+        if all_fused:
+            for p in range(n):
+                su[p] = _fma32(fu[oa + pc[p]] + fu[ob + pc[p]], gj, su[p])
+                sv[p] = _fma32(fv[oa + pc[p]] + fv[ob + pc[p]], gj, sv[p])
+            continue
+        for p in range(n):
+            xu = fu[oa + pc[p]] + fu[ob + pc[p]]
+            xv = fv[oa + pc[p]] + fv[ob + pc[p]]
+            if pf[p]:
+                su[p] = _fma32(xu, gj, su[p])
+                sv[p] = _fma32(xv, gj, sv[p])
+            else:
+                su[p] = su[p] + xu * gj
+                sv[p] = sv[p] + xv * gj
+
+
+@njit(cache=True)
+def _sobel_row(hp, r, gur, gvr):
+    """Row ``r`` of cv2.Sobel's 3x3 derivatives of an integer image ``hp`` (H, W) along u and
+    v (cv2.BORDER_REFLECT_101), as float32 into ``gur``, ``gvr`` (W,): sums of integers below
+    2^24, exact in any order."""
+    h, w = hp.shape
+    ra = hp[_reflect101(r - 1, h)]
+    rb = hp[r]
+    rc = hp[_reflect101(r + 1, h)]
+    # shifted 1-D views, indices from 0: the loop vectorises
+    al, am, ar = ra[: w - 2], ra[1 : w - 1], ra[2:]
+    bl, br = rb[: w - 2], rb[2:]
+    cl, cm, cr = rc[: w - 2], rc[1 : w - 1], rc[2:]
+    ou = gur[1 : w - 1]
+    ov = gvr[1 : w - 1]
+    for q in range(w - 2):
+        a0, a1, a2 = np.int32(al[q]), np.int32(am[q]), np.int32(ar[q])
+        b0, b2 = np.int32(bl[q]), np.int32(br[q])
+        c0, c1, c2 = np.int32(cl[q]), np.int32(cm[q]), np.int32(cr[q])
+        ou[q] = np.float32((a2 - a0) + 2 * (b2 - b0) + (c2 - c0))
+        ov[q] = np.float32((c0 + 2 * c1 + c2) - (a0 + 2 * a1 + a2))
+    for c in (0, w - 1):  # the reflected borders
+        cl = _reflect101(c - 1, w)
+        cr = _reflect101(c + 1, w)
+        a0, a1, a2 = np.int32(ra[cl]), np.int32(ra[c]), np.int32(ra[cr])
+        b0, b2 = np.int32(rb[cl]), np.int32(rb[cr])
+        c0, c1, c2 = np.int32(rc[cl]), np.int32(rc[c]), np.int32(rc[cr])
+        gur[c] = np.float32((a2 - a0) + 2 * (b2 - b0) + (c2 - c0))
+        gvr[c] = np.float32((c0 + 2 * c1 + c2) - (a0 + 2 * a1 + a2))
+
+
+@njit(cache=True)
+def _tensor_at(hp, gu, gv, g, mids, cols):
+    """J_uu and J_uv (K,) float32 of :func:`_structure_tensor` of ``hp`` (H, W) at the pixels
+    (``mids``, ``cols``) (K,), from the Sobel derivatives ``gu``, ``gv`` (H, W) float32 (or,
+    if they are (0, 0), those of an integer ``hp``, made row by row) and the Gaussian ``g``
+    (odd length, cv2.BORDER_REFLECT_101), with OpenCV's float32 arithmetic (see
+    ``_ROW_FUSED_LANES``). One pass down the rows: the row pass only on the column blocks
+    whose rows some point's column pass reads, kept for the last len(g) rows; the column pass
+    of a point as soon as its last row is made."""
+    h, w = hp.shape
+    rk = g.size // 2
+    bs = _TENSOR_BLOCK
+    nb = (w + bs - 1) // bs
+    nr = min(2 * rk + 1, h)
+    own = gu.shape[0] == 0
+    gub = np.empty(w, np.float32)
+    gvb = np.empty(w, np.float32)
+    # rows r of column block b that some point reads: a difference array summed down the rows
+    # (reflected rows near the borders fall inside mid - rk .. mid + rk, clamped); the points
+    # by the row that completes their column (counting sort)
+    diff = np.zeros((h + 1, nb), np.int32)
+    first = np.zeros(h + 1, np.intp)
+    for i in range(mids.size):
+        b = cols[i] // bs
+        diff[max(mids[i] - rk, 0), b] += 1
+        diff[min(mids[i] + rk, h - 1) + 1, b] -= 1
+        first[min(mids[i] + rk, h - 1) + 1] += 1
+    for r in range(h):
+        first[r + 1] += first[r]
+    order = np.empty(mids.size, np.intp)
+    fill = first[:h].copy()
+    for i in range(mids.size):
+        last = min(mids[i] + rk, h - 1)
+        order[fill[last]] = i
+        fill[last] += 1
+    cnt = np.zeros(nb, np.int32)
+    pad = w + 2 * rk
+    pu = np.empty(pad, np.float32)
+    pv = np.empty(pad, np.float32)
+    ru = np.empty((nr, w), np.float32)
+    rv = np.empty((nr, w), np.float32)
+    most = 0  # the most points of one row
+    for r in range(h):
+        most = max(most, first[r + 1] - first[r])
+    pi = np.empty(most, np.intp)
+    pc = np.empty(most, np.uint64)
+    pf = np.empty(most, np.bool_)
+    ju = np.empty(most, np.float32)
+    jv = np.empty(most, np.float32)
+    row_fused = _ROW_FUSED_LANES * (w // _ROW_FUSED_LANES)
+    col_fused = _COL_FUSED_LANES * (w // _COL_FUSED_LANES)
+    juu = np.empty(mids.size, np.float32)
+    juv = np.empty(mids.size, np.float32)
+    for r in range(h):
+        any_block = False
+        for b in range(nb):
+            cnt[b] += diff[r, b]
+            if cnt[b] > 0:
+                any_block = True
+        if any_block:
+            if own:
+                _sobel_row(hp, r, gub, gvb)
+                gur = gub
+                gvr = gvb
+            else:
+                gur = gu[r]
+                gvr = gv[r]
+            our = ru[r % nr]
+            ovr = rv[r % nr]
+            if w == 1:  # not filtered along a single column
+                our[0] = gur[0] * gur[0]
+                ovr[0] = gur[0] * gvr[0]
+            else:
+                du = pu[rk : rk + w]  # 1-D views from 0: the loop vectorises
+                dv = pv[rk : rk + w]
+                for q in range(w):
+                    du[q] = gur[q] * gur[q]
+                    dv[q] = gur[q] * gvr[q]
+                for q in range(rk):  # the reflected borders
+                    for d in (q, pad - 1 - q):
+                        pu[d] = pu[rk + _reflect101(d - rk, w)]
+                        pv[d] = pv[rk + _reflect101(d - rk, w)]
+                b = 0
+                while b < nb:
+                    if cnt[b] <= 0:
+                        b += 1
+                        continue
+                    e = b
+                    while e < nb and cnt[e] > 0:
+                        e += 1
+                    c0 = b * bs
+                    c1 = min(e * bs, w)
+                    _row_pass(pu, pv, g, our, ovr, c0, min(c1, row_fused), True)
+                    _row_pass(pu, pv, g, our, ovr, max(c0, row_fused), c1, False)
+                    b = e
+        if first[r] == first[r + 1]:
+            continue
+        if h == 1:  # not filtered along a single row
+            for k in range(first[r], first[r + 1]):
+                juu[order[k]] = ru[0, cols[order[k]]]
+                juv[order[k]] = rv[0, cols[order[k]]]
+            continue
+        # the points of row m = r - rk whose rows all lie in the image together, the others
+        # (near the top or bottom border) one by one
+        m = r - rk
+        n = 0
+        for k in range(first[r], first[r + 1]):
+            i = order[k]
+            if m - rk >= 0 and mids[i] == m:
+                pi[n] = i
+                pc[n] = np.uint64(cols[i])
+                pf[n] = cols[i] < col_fused
+                n += 1
+            else:
+                juu[i], juv[i] = _column_pass(ru, rv, g, mids[i], cols[i], h, cols[i] < col_fused)
+        if n:
+            _column_points(ru, rv, g, m % nr, pc, pf, ju, jv, n)
+            for p in range(n):
+                juu[pi[p]] = ju[p]
+                juv[pi[p]] = jv[p]
+    return juu, juv
+
+
+def _gaussian_taps(sigma: float) -> NDArray[np.float32]:
+    """The Gaussian (float32, odd length) that cv2.GaussianBlur uses on float32 data."""
+    return cv2.getGaussianKernel(round(sigma * 8 + 1) | 1, sigma, cv2.CV_32F).ravel()
+
+
+@functools.cache
+def _blur_is_opencvs() -> bool:
+    """Whether :func:`_tensor_at` gives cv2.GaussianBlur's values bit for bit here (OpenCV's
+    arithmetic as described at ``_ROW_FUSED_LANES``), on small random images whose widths
+    reach every kind of column. Checked once per process."""
+    rng = np.random.default_rng(0)
+    for h, w, sigma in ((23, 45, 2.5), (31, 21, 4.5), (9, 1, 1.5)):
+        x = rng.normal(0.0, 300.0, (h, w)).astype(np.float32)
+        mids, cols = (a.ravel() for a in np.indices((h, w)))
+        # gu^2 = x^2 and gu gv = x * 1 with gu = x and gv = 1
+        juu, juv = _tensor_at(x, x, np.ones_like(x), _gaussian_taps(sigma), mids, cols)
+        for got, p in ((juu, x * x), (juv, x)):
+            if not np.array_equal(got, cv2.GaussianBlur(p, (0, 0), sigma).ravel()):
+                return False
+    return True
+
+
+def _slopes_at(hp: NDArray, sigma: float, mids: NDArray, cols: NDArray) -> F32:
+    """:func:`stripe_slope` of ``hp`` (uint8, uint16 or float32) at the pixels (``mids``,
+    ``cols``) (K,): (K,) float32, the values of the whole image's structure tensor there."""
+    if mids.size == 0:
+        return np.empty(0, np.float32)
+    if _blur_is_opencvs():
+        if hp.dtype == np.float32:  # float sums: OpenCV's own order
+            gu = cv2.Sobel(hp, cv2.CV_32F, 1, 0, ksize=3)
+            gv = cv2.Sobel(hp, cv2.CV_32F, 0, 1, ksize=3)
+        else:
+            gu = gv = np.empty((0, 0), np.float32)
+        juu, juv = _tensor_at(hp, gu, gv, _gaussian_taps(sigma), mids, cols)
+    else:  # another OpenCV build: its own blur, over the whole image
+        tu, tv = _structure_tensor(hp, sigma)
+        juu, juv = tu[mids, cols], tv[mids, cols]
+    s = -juv / np.maximum(juu, np.float32(1e-6))
+    return np.clip(s, np.float32(-1.0), np.float32(1.0))
+
+
+@njit(cache=True)
+def _mask_runs_v(mask, words, cap):
+    """The vertical runs of ``mask`` (H, W) pixels: column, start and stop (one past the
+    last row) (K,) intp each, in the order of a row-major scan of their ends. ``words``
+    (H, W / 8) uint64 is ``mask`` read 8 pixels at a time ((H, 0) if W is not a multiple of
+    8): the bytes where a row's word differs from the one above are found by counting
+    trailing zeros, the others are not looked at. ``cap``: at least the number of runs
+    (e.g. the number of mask pixels)."""
+    h, w = mask.shape
+    nw = words.shape[1]
+    cols = np.empty(cap, np.intp)
+    starts = np.empty(cap, np.intp)
+    stops = np.empty(cap, np.intp)
+    start = np.full(w, -1, np.intp)
+    zero = np.uint64(0)
+    byte = np.uint64(0xFF)
+    k = 0
+    for r in range(h + 1):
+        for blk in range(nw):
+            above = words[r - 1, blk] if r > 0 else zero
+            here = words[r, blk] if r < h else zero
+            x = above ^ here
+            while x != zero:
+                bit = trailing_zeros(x) & 56  # the changed byte's first bit
+                x &= ~(byte << np.uint64(bit))
+                cur = (here >> np.uint64(bit)) & byte != zero
+                prev = (above >> np.uint64(bit)) & byte != zero
+                c = blk * 8 + bit // 8
+                if cur and not prev:
+                    start[c] = r
+                elif prev and not cur:
+                    cols[k] = c
+                    starts[k] = start[c]
+                    stops[k] = r
+                    k += 1
+        for c in range(8 * nw, w):  # no words: pixel by pixel
+            cur = r < h and mask[r, c] != 0
+            prev = r > 0 and mask[r - 1, c] != 0
+            if cur and not prev:
+                start[c] = r
+            elif prev and not cur:
+                cols[k] = c
+                starts[k] = start[c]
+                stops[k] = r
+                k += 1
+    return cols[:k], starts[:k], stops[:k]
+
+
+@njit(cache=True)
+def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
+    """:func:`fill_dots`'s refill of the vertical runs of dot pixels (``cols``, ``starts``,
+    ``stops`` (K,) of :func:`_mask_runs_v`) in ``out`` (a copy of ``hp``): a run touching the
+    image border or longer than ``lim`` rows takes the opening ``opened``; the others are
+    interpolated between the clean pixels t rows above and n + 1 - t rows below, shifted
+    sideways along the stripe by the run's slope (``slopes`` (K,) float32 px per row; (0,) for
+    straight above and below) and read by linear interpolation along their rows; ``rint``:
+    round, for integer images."""
+    h = hp.shape[0]
+    for i in range(cols.size):
+        c = cols[i]
+        start = starts[i]
+        stop = stops[i]
+        n = stop - start
+        if start == 0 or stop == h or n > lim:  # the opening, as the fallback
+            for q in range(start, stop):
+                out[q, c] = opened[q, c]
+            continue
+        den = float(np.float32(n + 1))
+        if slopes.size == 0:  # straight above and below
+            above = np.float32(hp[start - 1, c])
+            below = np.float32(hp[stop, c])
+            for t in range(1, n + 1):
+                val = float(above) + float(np.float32(below - above)) * (t / den)
+                if rint:
+                    val = np.rint(val)
+                out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+            continue
+        s = float(slopes[i])
         for t in range(1, n + 1):
+            above = _row_interp(hp, start - 1, float(c) - s * t)
+            below = _row_interp(hp, stop, float(c) + s * (n + 1 - t))
             val = float(above) + float(np.float32(below - above)) * (t / den)
             if rint:
                 val = np.rint(val)
             out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
-        return
-    mid = start + n // 2
-    if mode == 1:
-        s = float(np.float32(slope_a[mid, c]))
-    else:
-        sf = np.float32(-slope_b[mid, c] / max(slope_a[mid, c], np.float32(1e-6)))
-        s = float(min(max(sf, np.float32(-1.0)), np.float32(1.0)))
-    # along the stripe: the clean pixels t rows above and n + 1 - t rows below, shifted
-    # sideways by the local slope (linear interpolation along their rows)
-    row_a = hp[start - 1]
-    row_b = hp[stop]
-    for t in range(1, n + 1):
-        above = _row_interp(row_a, float(c) - s * t)
-        below = _row_interp(row_b, float(c) + s * (n + 1 - t))
-        val = float(above) + float(np.float32(below - above)) * (t / den)
-        if rint:
-            val = np.rint(val)
-        out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
-
-
-@njit(cache=True)
-def _fill_runs(hp, opened, mask, words, slope_a, slope_b, mode, rint, out, length):
-    """:func:`fill_dots`'s refill of every vertical run of ``mask`` pixels in ``out`` (a copy
-    of ``hp``), one row-major pass over the mask (see :func:`_fill_run`). ``words`` (H, W / 8)
-    uint64 is ``mask`` read 8 pixels at a time ((H, 0) if W is not a multiple of 8): blocks of
-    8 columns where a row's mask equals the one above hold no run start or end."""
-    h, w = hp.shape
-    nw = words.shape[1]
-    start = np.full(w, -1, np.intp)
-    zero = np.uint64(0)
-    for r in range(h + 1):
-        c0 = 0
-        while c0 < w:
-            c1 = min(c0 + 8, w)
-            k = c0 // 8
-            if k < nw:
-                above = words[r - 1, k] if r > 0 else zero
-                here = words[r, k] if r < h else zero
-                if above == here:
-                    c0 = c1
-                    continue
-            for c in range(c0, c1):
-                cur = r < h and mask[r, c] != 0
-                prev = r > 0 and mask[r - 1, c] != 0
-                if cur and not prev:
-                    start[c] = r
-                elif prev and not cur:
-                    _fill_run(
-                        hp, opened, slope_a, slope_b, mode, rint, out, start[c], r, c, 2 * length
-                    )
-            c0 = c1
 
 
 def _dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
@@ -404,19 +788,33 @@ def _dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
     return cv2.dilate(mask, np.ones((3, 3), np.uint8))
 
 
-def _fill(hp: NDArray, opened: NDArray, tau: float, length: int, mode: int, a, b) -> NDArray:
-    """:func:`fill_dots` with the slope given by ``mode`` and ``a``, ``b`` (see
-    :func:`_fill_run`)."""
+def _fill(
+    hp: NDArray, opened: NDArray, tau: float, length: int, slope: NDArray | float | None
+) -> NDArray:
+    """:func:`fill_dots`; ``slope`` the slope image, None (straight above and below) or the
+    integration scale (px, float) of the structure tensor that gives the slope where a run
+    needs it (:func:`_slopes_at`)."""
     out = hp.copy()
     mask = _dot_mask(hp, opened, tau)
-    rint = bool(np.issubdtype(hp.dtype, np.integer))
     h, w = mask.shape
     words = mask.view(np.uint64) if w % 8 == 0 else np.zeros((h, 0), np.uint64)
-    _fill_runs(hp, opened, mask, words, a, b, mode, rint, out, int(length))
+    cols, starts, stops = _mask_runs_v(mask, words, max(cv2.countNonZero(mask), 1))
+    lim = 2 * int(length)
+    if slope is None:
+        slopes = np.empty(0, np.float32)
+    else:
+        # the slope at the middle row of each run that is interpolated
+        n = stops - starts
+        inner = np.flatnonzero((starts > 0) & (stops < h) & (n <= lim))
+        mids = starts[inner] + n[inner] // 2
+        slopes = np.zeros(cols.size, np.float32)
+        if isinstance(slope, np.ndarray):
+            slopes[inner] = slope[mids, cols[inner]]
+        else:
+            slopes[inner] = _slopes_at(hp, slope, mids, cols[inner])
+    rint = bool(np.issubdtype(hp.dtype, np.integer))
+    _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim)
     return out
-
-
-_NO_SLOPE = np.zeros((1, 1), np.float32)
 
 
 def fill_dots(
@@ -454,9 +852,7 @@ def fill_dots(
     -------
     (H, W) slit image, dtype of ``hp``
     """
-    if slope is None:
-        return _fill(hp, opened, tau, length, 0, _NO_SLOPE, _NO_SLOPE)
-    return _fill(hp, opened, tau, length, 1, np.asarray(slope, np.float32), _NO_SLOPE)
+    return _fill(hp, opened, tau, length, None if slope is None else np.asarray(slope, np.float32))
 
 
 #: Background estimators of :func:`separate`; the first is the default.
@@ -486,6 +882,18 @@ def background_validated(img: NDArray, stripe_width_px: float, background: str) 
     return row_median_background(img, median_stride(stripe_width_px))
 
 
+def _at_least(img: NDArray, level: float) -> NDArray[np.bool_]:
+    """``img >= level`` (H, W) bool; an integer image is compared in its own type (the same
+    pixels, without a float copy)."""
+    if np.issubdtype(img.dtype, np.integer) and math.isfinite(level):
+        info = np.iinfo(img.dtype)
+        first = math.ceil(level)
+        if first > info.max:
+            return np.zeros(img.shape, bool)
+        return img >= img.dtype.type(max(first, info.min))
+    return img >= level
+
+
 def separate_validated(
     img: NDArray,
     stripe_width_px: float,
@@ -510,13 +918,12 @@ def separate_validated(
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)
-    juu, juv = _structure_tensor(hp, slope_sigma(length))
-    slits = _fill(hp, opened, 3.0 * noise, length, 2, juu, juv)
+    slits = _fill(hp, opened, 3.0 * noise, length, slope_sigma(length))
     level = _saturation_level(img, saturation_level)
     if level is None:
         sat = np.zeros(img.shape, bool)
     else:
-        sat = (img >= level).view(np.uint8)
+        sat = _at_least(img, level).view(np.uint8)
         # keep saturated runs that are stripes (vertically long), not saturated dots
         sat = vertical_opening(sat, length).view(bool)
     return hp, slits, sat, noise
@@ -525,17 +932,26 @@ def separate_validated(
 @njit(cache=True)
 def _pair_diff_histogram(img, levels):
     """Histogram (``levels``,) int64 of |img[2 i + 1] - img[2 i]| over rows pairs (i) and
-    columns of an integer image."""
+    columns of an integer image. Four partial histograms, one per column mod 4, summed at
+    the end: consecutive pixels do not wait on each other's counts."""
     h, w = img.shape
-    counts = np.zeros(levels, np.int64)
+    part = np.zeros((4, levels), np.int64)
     for i in range(h // 2):
         a = img[2 * i]
         b = img[2 * i + 1]
-        for c in range(w):
+        c = 0
+        while c + 4 <= w:
+            for j in range(4):
+                x = int(a[c + j])
+                y = int(b[c + j])
+                part[j, x - y if x >= y else y - x] += 1
+            c += 4
+        while c < w:
             x = int(a[c])
             y = int(b[c])
-            counts[x - y if x >= y else y - x] += 1
-    return counts
+            part[0, x - y if x >= y else y - x] += 1
+            c += 1
+    return part[0] + part[1] + part[2] + part[3]
 
 
 def noise_from_difference(img: NDArray) -> float:
