@@ -23,21 +23,18 @@ from multislit.stripes import (
     vertical_opening,
 )
 from multislit.stripes.centres import _gather, _row_maxima
+from multislit.stripes.openings import _running_extreme
 from multislit.stripes.separation import (
     _at_least,
-    _blur_is_opencvs,
-    _running_extreme,
-    _slopes_at,
-    _tensor_at,
     clip_level,
     fill_dots,
     mask_runs,
     noise_from_difference,
     quantisation_step,
     separate_validated,
-    slope_sigma,
 )
 from multislit.stripes.sizes import _best_scale, opening_length, ridge_contrast
+from multislit.stripes.slope import _blur_is_opencvs, _slopes_at, _tensor_at, slope_sigma
 
 DTYPES = (np.uint8, np.uint16, np.float32)
 

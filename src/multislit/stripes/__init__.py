@@ -52,6 +52,12 @@ from multislit.stripes.linking import (
     extract_slits,
     link_segments,
 )
+from multislit.stripes.openings import (
+    STREAK_ANGLES_DEG,
+    line_kernel,
+    remove_streaks,
+    vertical_opening,
+)
 from multislit.stripes.refine import (
     REFINE_STEGER_SCALE,
     refine_centres,
@@ -61,16 +67,10 @@ from multislit.stripes.refine import (
 from multislit.stripes.refine import compile_kernels as _compile_refine_kernels
 from multislit.stripes.separation import (
     BACKGROUNDS,
-    STREAK_ANGLES_DEG,
     Separation,
-    line_kernel,
-    remove_streaks,
     row_median_background,
     row_opening_background,
     separate,
-    slope_sigma,
-    stripe_slope,
-    vertical_opening,
 )
 from multislit.stripes.sizes import (
     FWHM_PER_SIGMA,
@@ -80,6 +80,7 @@ from multislit.stripes.sizes import (
     opening_length,
     ridge_contrast,
 )
+from multislit.stripes.slope import slope_sigma, stripe_slope
 from multislit.stripes.validation import CHANNELS, SlitExtractionError, as_image
 
 __all__ = [

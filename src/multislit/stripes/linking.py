@@ -20,11 +20,8 @@ from multislit.stripes.centres import (
     find_centres_validated,
     texture_sigma,
 )
-from multislit.stripes.separation import (
-    background_validated,
-    remove_streaks,
-    separate_validated,
-)
+from multislit.stripes.openings import remove_streaks
+from multislit.stripes.separation import background_validated, separate_validated
 from multislit.stripes.sizes import (
     estimate_dot_size,
     estimate_stripe_width,
@@ -57,7 +54,7 @@ class SlitExtraction:
     width : (K,) float64, stripe FWHM along the row (px), NaN where unknown
     segment : (K,) int64, segment id from :func:`link_segments` (0..S-1, ordered by mean u),
         -1 for points in segments shorter than ``min_length``
-    dots : (H, W) float32, the dot image (Fig. 11 e) less its streaks (:func:`remove_streaks`:
+    dots : (H, W) float32, the dot image (Fig. 11 e) less its streaks (:func:`~multislit.stripes.openings.remove_streaks`:
         pieces of stripes that lean too far for the vertical opening, on curved surfaces)
     noise_sigma : noise sigma of the highpass image (intensity units)
     stripe_width_px : stripe FWHM used (px); NaN if no stripe could be found to estimate it
@@ -237,7 +234,7 @@ def extract_slits(
 
     :func:`separate` -> :func:`find_stripe_centres` (threshold ``k_sigma`` times the highpass
     noise, saturated runs from the image) -> :func:`link_segments`; the dot image is cleaned of
-    streaks by :func:`remove_streaks`. An image without slits
+    streaks by :func:`~multislit.stripes.openings.remove_streaks`. An image without slits
     gives an empty result (zero-length arrays), not an error.
 
     ``reject_texture`` is for photos (a board, a turntable, a textured object; JPEG): the

@@ -10,16 +10,10 @@ import scipy.stats
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.separation import (
-    _reflect101,
-    fill_dots,
-    noise_from_difference,
-    row_median_background,
-    slope_sigma,
-    stripe_slope,
-    vertical_opening,
-)
+from multislit.stripes.openings import vertical_opening
+from multislit.stripes.separation import fill_dots, noise_from_difference, row_median_background
 from multislit.stripes.sizes import FWHM_PER_SIGMA, median_stride, opening_length
+from multislit.stripes.slope import reflect101, slope_sigma, stripe_slope
 from multislit.stripes.validation import SlitExtractionError, as_image, int_at_least, positive_px
 
 F32 = NDArray[np.float32]
@@ -235,7 +229,7 @@ def _highpass_and_tensor(
 ) -> tuple[F32, F32, F32, F32, F32]:
     """The highpass of :func:`refine_slit_image` (image minus its row median background
     averaged over 2 R + 1 rows and 2 :func:`median_stride` + 1 columns), (H, W) float32; the
-    structure tensor products gu^2 and gu gv of :func:`stripe_slope` on it, transposed (W, H)
+    structure tensor products gu^2 and gu gv of :func:`~multislit.stripes.slope.stripe_slope` on it, transposed (W, H)
     float32; the Gaussian (float32) that integrates them; and a free (W, H) float32 array."""
     h, w = img.shape
     stride = median_stride(sw)
@@ -358,7 +352,7 @@ def _slope_rows(put, pvt, g, hx, hy, c, q0, q1):
     sx[:] = 0.0
     sy[:] = 0.0
     for j in range(-rk, rk + 1):
-        cc = _reflect101(c + j, w)
+        cc = reflect101(c + j, w)
         gj = g[j + rk]
         px = put[cc, q0:q1]
         py = pvt[cc, q0:q1]
@@ -369,7 +363,7 @@ def _slope_rows(put, pvt, g, hx, hy, c, q0, q1):
 
 @njit(cache=True, inline="always")
 def _slope_at(put, pvt, g, hx, hy, state, mid, c):
-    """:func:`stripe_slope` at (``mid``, ``c``): du/dv clipped to +-1, float32, from the
+    """:func:`~multislit.stripes.slope.stripe_slope` at (``mid``, ``c``): du/dv clipped to +-1, float32, from the
     Gaussian ``g`` (odd length, cv2.BORDER_REFLECT_101) of the structure tensor products
     gu^2, gu gv, given transposed (W, H) as ``put``, ``pvt``. The Gaussian's pass along u is
     read from ``hx``, ``hy`` (W, H), made by :func:`_slope_rows` for the blocks of rows of
@@ -392,7 +386,7 @@ def _slope_at(put, pvt, g, hx, hy, state, mid, c):
             juv += g[i] * py[i]
     else:
         for i in range(-rk, rk + 1):
-            q = _reflect101(mid + i, h)
+            q = reflect101(mid + i, h)
             juu += g[i + rk] * hx[c, q]
             juv += g[i + rk] * hy[c, q]
     s = np.float32(-juv / max(juu, np.float32(1e-6)))

@@ -1,0 +1,163 @@
+"""Grey openings with line structuring elements: the vertical opening that finds the dots on
+upright stripes, the opening that follows a leaning stripe, and the streak removal of the dot
+image (paper, section 4.1, Fig. 11)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+
+def _running_extreme(x: NDArray, length: int, op: str) -> NDArray:
+    """Min (``op='min'``) or max over a centred vertical window of odd ``length`` (per column).
+
+    Doubling trick: log2(length) + 1 vectorised min/max passes; out-of-image samples are
+    ignored (padded with the neutral value).
+    """
+    fn = cv2.min if op == "min" else cv2.max
+    if np.issubdtype(x.dtype, np.integer):
+        info = np.iinfo(x.dtype)
+        neutral = float(info.max if op == "min" else info.min)
+    else:
+        neutral = float(np.finfo(x.dtype).max if op == "min" else -np.finfo(x.dtype).max)
+    r = length // 2
+    h = x.shape[0]
+    y = cv2.copyMakeBorder(x, r, r, 0, 0, cv2.BORDER_CONSTANT, value=neutral)
+    span = 1
+    while 2 * span <= length:
+        y = fn(y[:-span], y[span:])
+        span *= 2
+    if span < length:
+        y = fn(y[: len(y) - (length - span)], y[length - span :])
+    return y[:h]
+
+
+def vertical_opening(x: NDArray, length: int) -> NDArray:
+    """Grey opening with a vertical line of odd ``length`` px (erosion then dilation);
+    out-of-image samples are ignored. OpenCV's opening with a (length, 1) rectangle for the
+    types it takes (min and max are exact: the same values as :func:`_running_extreme`)."""
+    if length <= 1:
+        return x.copy()
+    if x.dtype in (np.uint8, np.uint16, np.float32, np.float64):
+        return cv2.morphologyEx(x, cv2.MORPH_OPEN, np.ones((int(length), 1), np.uint8))
+    return _running_extreme(_running_extreme(x, length, "min"), length, "max")
+
+
+#: Directions (deg from the image's vertical) of the line openings that find streaks in the dot
+#: image: pieces of stripes leaning too far for the vertical opening (curved surfaces), and
+#: edges; vertical streaks are left alone (dots in bands along the slits line up vertically).
+STREAK_ANGLES_DEG = (-75.0, -60.0, -45.0, -30.0, -15.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+
+
+def line_kernel(length: int, angle_deg: float) -> NDArray[np.uint8]:
+    """Structuring element: a digital line of ``length`` px through the centre of a square
+    (length x length) kernel, ``angle_deg`` from the vertical (positive leans right going down)."""
+    k = np.zeros((length, length), np.uint8)
+    r = (length - 1) // 2
+    a = math.radians(angle_deg)
+    # half offsets rounded half away from zero, so the line is symmetric about the centre
+    # (Python's round() rounds 1.5 and 2.5 both to 2: 15 and 30 deg would be one kernel)
+    dx = int(math.copysign(math.floor(abs(r * math.sin(a)) + 0.5), math.sin(a)))
+    dy = int(math.copysign(math.floor(abs(r * math.cos(a)) + 0.5), math.cos(a)))
+    cv2.line(k, (r - dx, r - dy), (r + dx, r + dy), 1, 1)
+    return k
+
+
+def remove_streaks(
+    dots: NDArray, length: int, angles_deg: tuple[float, ...] = STREAK_ANGLES_DEG
+) -> NDArray:
+    """The dot image less its streaks: ``dots`` minus the supremum of its grey openings with
+    lines of ``length`` px at ``angles_deg``. A dot is shorter than the line in every direction
+    and stays; a piece of stripe or an edge that contains such a line goes."""
+    if length <= 1:
+        return dots.copy()
+    out = None
+    for a in angles_deg:
+        o = cv2.morphologyEx(dots, cv2.MORPH_OPEN, line_kernel(length, a))
+        out = o if out is None else cv2.max(out, o, dst=out)
+    return cv2.subtract(dots, out, dst=out)
+
+
+#: Directions (deg from the vertical) the opening follows a leaning stripe in: a stripe leaning
+#: more than half a step (7.5 deg) from upright is opened along the nearest of them.
+FOLLOW_ANGLES_DEG = (-60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0)
+
+
+def _follow_offsets(length: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The digital lines of :func:`line_kernel` at :data:`FOLLOW_ANGLES_DEG`: (A, n, 2) int64
+    (row, column) offsets from the kernel's centre, and (A,) the number of pixels of each."""
+    r = (length - 1) // 2
+    lines = [np.argwhere(line_kernel(length, a)) - r for a in FOLLOW_ANGLES_DEG]
+    offs = np.zeros((len(lines), max(len(p) for p in lines), 2), np.int64)
+    for i, p in enumerate(lines):
+        offs[i, : len(p)] = p
+    return offs, np.array([len(p) for p in lines], np.int64)
+
+
+@njit(cache=True)
+def _opening_at(x, rows, cols, line, offs, count, out):
+    """``out[i]``: the grey opening of ``x`` (H, W) at pixel (``rows[i]``, ``cols[i]``) with the
+    line ``offs[line[i], :count[line[i]]]``: the largest, over the line's placements that cover
+    the pixel, of the smallest sample under the placement (samples outside the image ignored,
+    as OpenCV ignores its border): the erosion with the line, then the dilation with the line
+    reflected (some digital lines are not symmetric about their centre)."""
+    h, w = x.shape
+    for i in range(rows.size):
+        r = rows[i]
+        c = cols[i]
+        b = line[i]
+        n = count[b]
+        best = -np.inf
+        for j in range(n):
+            qr = r - offs[b, j, 0]
+            qc = c - offs[b, j, 1]
+            if qr < 0 or qr >= h or qc < 0 or qc >= w:
+                continue
+            low = np.inf
+            for k in range(n):
+                sr = qr + offs[b, k, 0]
+                sc = qc + offs[b, k, 1]
+                if 0 <= sr < h and 0 <= sc < w:
+                    low = min(low, float(x[sr, sc]))
+            best = max(best, low)
+        out[i] = best
+
+
+def follow_stripe_opening(
+    hp: NDArray, opened: NDArray, length: int, rows: NDArray, cols: NDArray, slopes: NDArray
+) -> None:
+    """Where a stripe leans, open ``hp`` along it instead of vertically (in place).
+
+    A vertical line of ``length`` px fits inside an upright stripe but not inside one leaning
+    further than about a stripe width over the line: there the vertical opening cuts the
+    stripe, and the stripe would be taken for dots. At the pixels given, where the stripes lean
+    (``slopes``, du/dv) by more than 7.5 deg, ``opened`` is raised to the opening of ``hp`` with
+    a line of the same length along the nearest of :data:`FOLLOW_ANGLES_DEG`; a dot is shorter
+    than the line in every direction, so it stays below the opening either way.
+
+    Parameters
+    ----------
+    hp : (H, W) highpass image (uint8, uint16 or float32)
+    opened : (H, W) its vertical opening (:func:`vertical_opening`), same dtype; updated
+    length : int, px, the opening's line length
+    rows, cols : (K,) intp, the pixels to open along the stripe (those the vertical opening
+        lowered enough to count as dots)
+    slopes : (K,) float, px per row, the stripes' lean du/dv at those pixels
+    """
+    ang = np.degrees(np.arctan(np.asarray(slopes, np.float64)))
+    step = FOLLOW_ANGLES_DEG[1] - FOLLOW_ANGLES_DEG[0]
+    mid = len(FOLLOW_ANGLES_DEG) // 2
+    line = np.clip(np.rint(ang / step).astype(np.int64) + mid, 0, len(FOLLOW_ANGLES_DEG) - 1)
+    lean = line != mid
+    if length <= 1 or not lean.any():
+        return
+    r = np.ascontiguousarray(rows[lean], np.intp)
+    c = np.ascontiguousarray(cols[lean], np.intp)
+    offs, count = _follow_offsets(int(length))
+    val = np.empty(r.size)
+    _opening_at(hp, r, c, line[lean], offs, count, val)
+    opened[r, c] = np.maximum(opened[r, c], val.astype(opened.dtype))
