@@ -23,7 +23,7 @@ from multislit.stripes import (
     vertical_opening,
 )
 from multislit.stripes.centres import _gather, _row_maxima
-from multislit.stripes.openings import _running_extreme
+from multislit.stripes.openings import _running_extreme, follow_stripe_opening
 from multislit.stripes.separation import (
     _at_least,
     clip_level,
@@ -34,7 +34,14 @@ from multislit.stripes.separation import (
     separate_validated,
 )
 from multislit.stripes.sizes import _best_scale, opening_length, ridge_contrast
-from multislit.stripes.slope import _blur_is_opencvs, _slopes_at, _tensor_at, slope_sigma
+from multislit.stripes.slope import (
+    LEAN_DECIMATION,
+    _blur_is_opencvs,
+    _slopes_at,
+    _tensor_at,
+    lean_map,
+    slope_sigma,
+)
 
 DTYPES = (np.uint8, np.uint16, np.float32)
 
@@ -375,14 +382,17 @@ def test_saturation_compare_in_image_type_equals_float_compare(dtype):
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_slit_image_equals_refill_with_whole_image_slope(dtype):
     """The extraction's slit image (the slope only at the runs that need it) is fill_dots with
-    the whole image's stripe slope."""
+    the whole image's stripe slope (on the opening that follows leaning stripes)."""
     rng = np.random.default_rng(17)
     for h, w, ds in ((64, 80, 1.5), (57, 45, 2.1)):
         img = _image(rng, dtype, h, w)
         hp, slits, _, noise = separate_validated(img, 3.0, ds, None)
         length = opening_length(ds)
         slope = stripe_slope(hp, slope_sigma(length))
-        ref = fill_dots(hp, vertical_opening(hp, length), 3.0 * noise, length, slope)
+        opened = vertical_opening(hp, length)
+        ang = lean_map(hp, slope_sigma(length))
+        follow_stripe_opening(hp, opened, length, ang, LEAN_DECIMATION, 3.0 * noise)
+        ref = fill_dots(hp, opened, 3.0 * noise, length, slope)
         assert slits.dtype == hp.dtype
         assert np.any(slits != hp)  # dots were refilled
         np.testing.assert_array_equal(slits, ref)

@@ -99,65 +99,77 @@ def _follow_offsets(length: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
 
 
 @njit(cache=True)
-def _opening_at(x, rows, cols, line, offs, count, out):
-    """``out[i]``: the grey opening of ``x`` (H, W) at pixel (``rows[i]``, ``cols[i]``) with the
-    line ``offs[line[i], :count[line[i]]]``: the largest, over the line's placements that cover
-    the pixel, of the smallest sample under the placement (samples outside the image ignored,
-    as OpenCV ignores its border): the erosion with the line, then the dilation with the line
+def _follow_cells(hp, opened, line, f, offs, count, tau):
+    """:func:`follow_stripe_opening` on the cells with a line (``line`` (H // f, W // f) int64,
+    the index into ``offs``, -1: upright): at each of their pixels where ``opened`` lies below
+    ``hp`` by more than ``tau`` plus 5 % of itself, ``opened`` is raised to the grey opening
+    of ``hp`` with the cell's line: the largest, over the line's placements that cover the
+    pixel, of the smallest sample under the placement (samples outside the image ignored, as
+    OpenCV ignores its border), i.e. the erosion with the line, then the dilation with the line
     reflected (some digital lines are not symmetric about their centre)."""
-    h, w = x.shape
-    for i in range(rows.size):
-        r = rows[i]
-        c = cols[i]
-        b = line[i]
-        n = count[b]
-        best = -np.inf
-        for j in range(n):
-            qr = r - offs[b, j, 0]
-            qc = c - offs[b, j, 1]
-            if qr < 0 or qr >= h or qc < 0 or qc >= w:
+    h, w = hp.shape
+    nr, nc = line.shape
+    for cr in range(nr):
+        r1 = h if cr == nr - 1 else (cr + 1) * f
+        for cc in range(nc):
+            b = line[cr, cc]
+            if b < 0:
                 continue
-            low = np.inf
-            for k in range(n):
-                sr = qr + offs[b, k, 0]
-                sc = qc + offs[b, k, 1]
-                if 0 <= sr < h and 0 <= sc < w:
-                    low = min(low, float(x[sr, sc]))
-            best = max(best, low)
-        out[i] = best
+            n = count[b]
+            c1 = w if cc == nc - 1 else (cc + 1) * f
+            for r in range(cr * f, r1):
+                for c in range(cc * f, c1):
+                    o = float(opened[r, c])
+                    if float(hp[r, c]) - o <= tau + 0.05 * o:
+                        continue
+                    best = -np.inf
+                    for j in range(n):
+                        qr = r - offs[b, j, 0]
+                        qc = c - offs[b, j, 1]
+                        if qr < 0 or qr >= h or qc < 0 or qc >= w:
+                            continue
+                        low = np.inf
+                        for k in range(n):
+                            sr = qr + offs[b, k, 0]
+                            sc = qc + offs[b, k, 1]
+                            if 0 <= sr < h and 0 <= sc < w:
+                                low = min(low, float(hp[sr, sc]))
+                        best = max(best, low)
+                    if best > o:
+                        opened[r, c] = best
 
 
 def follow_stripe_opening(
-    hp: NDArray, opened: NDArray, length: int, rows: NDArray, cols: NDArray, slopes: NDArray
+    hp: NDArray, opened: NDArray, length: int, angles: NDArray, decimation: int, tau: float
 ) -> None:
     """Where a stripe leans, open ``hp`` along it instead of vertically (in place).
 
     A vertical line of ``length`` px fits inside an upright stripe but not inside one leaning
     further than about a stripe width over the line: there the vertical opening cuts the
-    stripe, and the stripe would be taken for dots. At the pixels given, where the stripes lean
-    (``slopes``, du/dv) by more than 7.5 deg, ``opened`` is raised to the opening of ``hp`` with
-    a line of the same length along the nearest of :data:`FOLLOW_ANGLES_DEG`; a dot is shorter
-    than the line in every direction, so it stays below the opening either way.
+    stripe, and the stripe would be taken for dots. Where the stripes lean by more than 7.5 deg
+    (``angles``), at the pixels where ``opened`` lies below ``hp`` by more than the dot
+    threshold (``tau`` plus 5 % of the opening), ``opened`` is raised to the opening of ``hp``
+    with a line of the same length along the nearest of :data:`FOLLOW_ANGLES_DEG`; a dot is
+    shorter than the line in every direction, so it stays below the opening either way.
 
     Parameters
     ----------
     hp : (H, W) highpass image (uint8, uint16 or float32)
     opened : (H, W) its vertical opening (:func:`vertical_opening`), same dtype; updated
     length : int, px, the opening's line length
-    rows, cols : (K,) intp, the pixels to open along the stripe (those the vertical opening
-        lowered enough to count as dots)
-    slopes : (K,) float, px per row, the stripes' lean du/dv at those pixels
+    angles : (H // D, W // D) float, deg from the vertical (positive leaning right going
+        down), the stripes' direction per cell of D x D px
+        (:func:`~multislit.stripes.slope.lean_map`; the last row and column of cells take
+        the image's remainder); NaN where there is none (the vertical opening stays)
+    decimation : int, D, px
+    tau : float, intensity units, the dot threshold above the opening
     """
-    ang = np.degrees(np.arctan(np.asarray(slopes, np.float64)))
+    ang = np.nan_to_num(np.asarray(angles, np.float64), nan=0.0)
     step = FOLLOW_ANGLES_DEG[1] - FOLLOW_ANGLES_DEG[0]
     mid = len(FOLLOW_ANGLES_DEG) // 2
     line = np.clip(np.rint(ang / step).astype(np.int64) + mid, 0, len(FOLLOW_ANGLES_DEG) - 1)
-    lean = line != mid
-    if length <= 1 or not lean.any():
+    if length <= 1 or not (line != mid).any():
         return
-    r = np.ascontiguousarray(rows[lean], np.intp)
-    c = np.ascontiguousarray(cols[lean], np.intp)
+    line[line == mid] = -1
     offs, count = _follow_offsets(int(length))
-    val = np.empty(r.size)
-    _opening_at(hp, r, c, line[lean], offs, count, val)
-    opened[r, c] = np.maximum(opened[r, c], val.astype(opened.dtype))
+    _follow_cells(hp, opened, line, int(decimation), offs, count, float(tau))

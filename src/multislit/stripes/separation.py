@@ -11,14 +11,14 @@ from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.openings import vertical_opening
+from multislit.stripes.openings import follow_stripe_opening, vertical_opening
 from multislit.stripes.sizes import (
     estimate_dot_size,
     estimate_stripe_width,
     median_stride,
     opening_length,
 )
-from multislit.stripes.slope import _slopes_at, reflect101, slope_sigma
+from multislit.stripes.slope import LEAN_DECIMATION, _slopes_at, lean_map, reflect101, slope_sigma
 from multislit.stripes.validation import SlitExtractionError, as_image, positive_px
 
 F32 = NDArray[np.float32]
@@ -464,6 +464,10 @@ def separate_validated(
     noise = noise_from_difference(img)
     length = opening_length(dot_size_px)
     opened = vertical_opening(hp, length)
+    # where a stripe leans too far for the vertical line, the opening follows the stripe
+    follow_stripe_opening(
+        hp, opened, length, lean_map(hp, slope_sigma(length)), LEAN_DECIMATION, 3.0 * noise
+    )
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)

@@ -393,3 +393,47 @@ def _slopes_at(hp: NDArray, sigma: float, mids: NDArray, cols: NDArray) -> F32:
         juu, juv = tu[mids, cols], tv[mids, cols]
     s = -juv / np.maximum(juu, np.float32(1e-6))
     return np.clip(s, np.float32(-1.0), np.float32(1.0))
+
+
+#: :func:`lean_map` reads the stripes' direction on the image decimated this many times.
+LEAN_DECIMATION = 4
+#: ... where the structure there is at least this coherent (1: one direction, 0: none).
+_LEAN_COHERENCE = 0.5
+
+
+def lean_map(hp: NDArray, sigma: float) -> F32:
+    """The stripes' direction, deg from the vertical (positive leaning right going down), on
+    the image decimated by :data:`LEAN_DECIMATION`: (H // D, W // D) float32, NaN where the
+    image has no one direction (an isolated dot, blank background).
+
+    The structure tensor of ``hp`` integrated over a Gaussian of ``sigma`` px, on the image
+    averaged over blocks of D x D px: the direction is smooth over a few stripe widths, and it
+    only chooses among lines 15 deg apart
+    (:func:`~multislit.stripes.openings.follow_stripe_opening`). Where the tensor's coherence
+    ((l1 - l2) / (l1 + l2) of its eigenvalues) is below :data:`_LEAN_COHERENCE`, NaN. Pixel
+    (r, c) of the image lies in cell (r // D, c // D) (the last cells take the remainder).
+
+    Parameters
+    ----------
+    hp : (H, W) highpass image (uint8, uint16 or float32)
+    sigma : float, px, the integration scale (:func:`slope_sigma`)
+    """
+    h, w = hp.shape
+    f = LEAN_DECIMATION
+    if h < 2 * f or w < 2 * f:
+        return np.full((max(h // f, 1), max(w // f, 1)), np.nan, np.float32)
+    small = cv2.resize(hp, (w // f, h // f), interpolation=cv2.INTER_AREA).astype(np.float32)
+    gu = cv2.Sobel(small, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(small, cv2.CV_32F, 0, 1, ksize=3)
+    s = max(sigma / f, 0.5)
+    juu = cv2.GaussianBlur(cv2.multiply(gu, gu), (0, 0), s)
+    jvv = cv2.GaussianBlur(cv2.multiply(gv, gv), (0, 0), s)
+    juv2 = cv2.GaussianBlur(cv2.multiply(gu, gv, scale=2.0), (0, 0), s)
+    # the gradients lie across the stripe, at half the angle of (J_uu - J_vv, 2 J_uv) from the
+    # u axis; a stripe f(u - s v) has gradients along (1, -s): it leans atan(s), minus that
+    mag, phase = cv2.cartToPolar(cv2.subtract(juu, jvv), juv2, angleInDegrees=True)
+    theta = phase * np.float32(0.5)  # [0, 180)
+    ang = np.where(theta > 90.0, np.float32(180.0) - theta, -theta)  # [-90, 90)
+    incoherent = mag < cv2.add(juu, jvv) * np.float32(_LEAN_COHERENCE) + np.float32(1e-12)
+    ang[incoherent] = np.nan
+    return ang
