@@ -6,9 +6,10 @@ scattered along them, by stage:
 1. :func:`separate` (:mod:`~multislit.stripes.separation`): a running median along each row,
    wider than a stripe, estimates the background (ambient light, albedo, texture); subtracting
    it (clipped at 0) leaves the stripes and dots on a flat background (Fig. 11 c). A
-   morphological opening with a vertical line longer than a dot finds the dots, which are
-   refilled by interpolation along the stripe (d); the dots are the difference (e). The stripe
-   and dot sizes that set the filters are estimated from the image
+   morphological opening with a vertical line longer than a dot finds the dots (a line along
+   the stripe where it leans: :mod:`~multislit.stripes.openings`), which are refilled by
+   interpolation along the stripe's lean (d; :mod:`~multislit.stripes.slope`); the dots are the
+   difference (e). The stripe and dot sizes that set the filters are estimated from the image
    (:mod:`~multislit.stripes.sizes`).
 2. :func:`find_stripe_centres` (:mod:`~multislit.stripes.centres`): in every row, each
    stripe's local maximum above a noise threshold, refined to sub-pixel by a 3-point fit
@@ -30,7 +31,8 @@ keeps only centres that look like a laser line (:func:`stripe_like`, :func:`text
 
 Pixel convention: (u, v), u right (column), v down (row), (0, 0) the centre of the top-left
 pixel. Whole-image passes are OpenCV or NumPy; the loops NumPy cannot vectorise (the dots'
-refill, the row maxima, the linking) are compiled with Numba (:func:`compile_kernels`).
+refill and the stripe slope it needs, the opening along leaning stripes, the row maxima, the
+linking) are compiled with Numba (:func:`compile_kernels`).
 """
 
 import numpy as np
@@ -133,6 +135,7 @@ def compile_kernels() -> None:
     call this once after installing. The extraction is run on small uint8, uint16 and
     float32 images (each pixel type has its own machine code).
     """
+    from multislit.stripes.openings import follow_stripe_opening
     from multislit.stripes.separation import fill_dots
 
     _compile_refine_kernels()
@@ -146,3 +149,4 @@ def compile_kernels() -> None:
         extract_slits(x, 4.0, 2.0, reject_texture=True)
         fill_dots(x, vertical_opening(x, 5), 1.0, 5)
         fill_dots(x, vertical_opening(x, 5), 1.0, 5, stripe_slope(x, 2.5))
+        follow_stripe_opening(x, vertical_opening(x, 5), 5, np.full((12, 12), 30.0), 4, 0.0)
