@@ -10,10 +10,10 @@ import scipy.stats
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.openings import vertical_opening
+from multislit.stripes.openings import follow_stripe_opening, vertical_opening
 from multislit.stripes.separation import fill_dots, noise_from_difference, row_median_background
 from multislit.stripes.sizes import FWHM_PER_SIGMA, median_stride, opening_length
-from multislit.stripes.slope import reflect101, slope_sigma, stripe_slope
+from multislit.stripes.slope import LEAN_DECIMATION, lean_map, reflect101, slope_sigma, stripe_slope
 from multislit.stripes.validation import SlitExtractionError, as_image, int_at_least, positive_px
 
 F32 = NDArray[np.float32]
@@ -45,7 +45,8 @@ def refine_slit_image(
     (neighbouring pixels' medians are taken over different samples) and follows the flanks
     of nearby stripes; a stripe's profile inherits both as a slope that moves its centre. Here
     it is averaged by a ``bg_cols`` x ``bg_rows`` box (along u and v), not clipped at 0, and
-    the dots are refilled by interpolation along the stripe as in the extraction.
+    the dots are found (the opening following leaning stripes) and refilled by interpolation
+    along the stripe as in the extraction.
 
     Parameters
     ----------
@@ -65,7 +66,10 @@ def refine_slit_image(
     noise = noise_from_difference(img)
     length = opening_length(dot_size_px)
     slope = stripe_slope(hp, slope_sigma(length))
-    return fill_dots(hp, vertical_opening(hp, length), 3.0 * noise, length, slope)
+    opened = vertical_opening(hp, length)
+    ang = lean_map(hp, slope_sigma(length))
+    follow_stripe_opening(hp, opened, length, ang, LEAN_DECIMATION, 3.0 * noise)
+    return fill_dots(hp, opened, 3.0 * noise, length, slope)
 
 
 def refine_half_rows(stripe_width_px: float) -> int:
@@ -256,9 +260,13 @@ def _highpass_and_tensor(
 
 def _dot_mask(hp: F32, length: int, tau: float) -> tuple[NDArray[np.uint8], F32, F32, F32]:
     """The dot mask of :func:`fill_dots` (uint8, 255 on dots) and the opening it is found
-    with, both (H, W); and two free (H, W) float32 arrays."""
+    with (along the stripes where they lean, as the extraction's), both (H, W); and two free
+    (H, W) float32 arrays."""
     shape = hp.shape
     opened = vertical_opening(hp, length)
+    follow_stripe_opening(
+        hp, opened, length, lean_map(hp, slope_sigma(length)), LEAN_DECIMATION, tau
+    )
     diff = cv2.subtract(hp, opened, dst=np.empty(shape, np.float32))
     thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau, dst=np.empty(shape, np.float32))
     mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=np.empty(shape, np.uint8))
