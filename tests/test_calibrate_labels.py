@@ -83,12 +83,12 @@ def test_labels_are_right(small_capture, order_labels):
     # no point labelled with another slit than the truth
     assert correct >= 0.995, (correct, wrong, lab.stats)
     assert wrong <= 0.001 * (lab.slit >= 0).sum()
-    # the order labels most stripe centres on the faces (measured 89.7 %), many more than the
-    # dots alone (measured: 13.1 % of the centres more; the dots alone label 76.5 %), also on
-    # the ramp
+    # the order labels most stripe centres on the faces (measured 89.7 %), more than the dots
+    # alone (measured: 7.3 % of the centres more; the dots alone label 82.5 %, the target's
+    # faces' leaning stripes being kept whole), also on the ramp
     on = lab.face >= 0
     assert (lab.slit[on] >= 0).mean() > 0.85, lab.stats
-    assert (lab.slit[on] >= 0).sum() > (lab.dot_slit[on] >= 0).sum() + 0.10 * on.sum(), lab.stats
+    assert (lab.slit[on] >= 0).sum() > (lab.dot_slit[on] >= 0).sum() + 0.05 * on.sum(), lab.stats
     for f in np.unique(lab.face[on]):
         assert (lab.slit[lab.face == f] >= 0).mean() > 0.5, (f, lab.stats)
 
