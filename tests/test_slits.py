@@ -486,13 +486,15 @@ def test_remove_streaks_keeps_dots_and_drops_leaning_stripes():
     assert out[on_streak].mean() < 0.1 * 80.0
 
 
-@pytest.mark.parametrize("slope", [0.2, 0.4])
+@pytest.mark.parametrize("slope", [0.2, 0.4, 0.6, 0.8])
 def test_leaning_speckled_stripe_one_segment(slope):
-    # a stripe leaning 11 or 22 deg (du/dv 0.2, 0.4) with speckle like the simulator's: the
+    # a stripe leaning 11 to 39 deg (du/dv 0.2 to 0.8) with speckle like the simulator's: the
     # speckle peaks along it are taken for dots; they must be refilled along the stripe, not
-    # straight down the column (which cut the stripe's core out: measured before, at 0.2: 2-3
-    # segments, 2-8 rows with two centres, 0.31-0.34 px RMS; at 0.4: 16-18 segments, 91-97
-    # doubled rows, 1.4 px RMS; now one segment, none doubled, 0.16-0.18 px RMS)
+    # straight down the column (which cut the stripe's core out: at 0.2, 2-3 segments, 2-8 rows
+    # with two centres, 0.31-0.34 px RMS; at 0.4, 16-18 segments, 91-97 doubled rows, 1.4 px
+    # RMS). From 0.6 on the vertical opening cuts the stripe itself (5-7 doubled rows, 0.30-0.37
+    # px RMS); the opening along it keeps it. Measured: one segment, none doubled, 0.12-0.17 px
+    # RMS
     h = 240
     for seed in (0, 1):
         img, uc = _one_stripe(
