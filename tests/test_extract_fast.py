@@ -23,7 +23,7 @@ from multislit.stripes import (
     vertical_opening,
 )
 from multislit.stripes.centres import _gather, _row_maxima
-from multislit.stripes.openings import _running_extreme, follow_stripe_opening
+from multislit.stripes.openings import _running_extreme, stripe_opening
 from multislit.stripes.separation import (
     _at_least,
     clip_level,
@@ -35,11 +35,9 @@ from multislit.stripes.separation import (
 )
 from multislit.stripes.sizes import _best_scale, opening_length, ridge_contrast
 from multislit.stripes.slope import (
-    LEAN_DECIMATION,
     _blur_is_opencvs,
     _slopes_at,
     _tensor_at,
-    lean_map,
     slope_sigma,
 )
 
@@ -389,10 +387,7 @@ def test_slit_image_equals_refill_with_whole_image_slope(dtype):
         hp, slits, _, noise = separate_validated(img, 3.0, ds, None)
         length = opening_length(ds)
         slope = stripe_slope(hp, slope_sigma(length))
-        opened = vertical_opening(hp, length)
-        ang = lean_map(hp, slope_sigma(length))
-        follow_stripe_opening(hp, opened, length, ang, LEAN_DECIMATION, 3.0 * noise)
-        ref = fill_dots(hp, opened, 3.0 * noise, length, slope)
+        ref = fill_dots(hp, stripe_opening(hp, length, 3.0 * noise), 3.0 * noise, length, slope)
         assert slits.dtype == hp.dtype
         assert np.any(slits != hp)  # dots were refilled
         np.testing.assert_array_equal(slits, ref)

@@ -439,14 +439,10 @@ def test_pick_curved_matches_numpy_reference():
 
 def _steger_setup(img, ex):
     """The inputs of ``_steger_kernel`` for an extraction's points, as refine_centres makes
-    them (copies: the work arrays are reused by the next call)."""
-    from multislit.stripes.refine import (
-        _SLOPE_BLOCK,
-        _dot_mask,
-        _highpass_and_tensor,
-        _segment_rows,
-    )
-    from multislit.stripes.separation import noise_from_difference
+    them."""
+    from multislit.stripes.openings import stripe_opening
+    from multislit.stripes.refine import _SLOPE_BLOCK, _highpass_and_tensor, _segment_rows
+    from multislit.stripes.separation import dot_mask, noise_from_difference
 
     h, w = img.shape
     sw, ds = ex.stripe_width_px, ex.dot_size_px
@@ -455,8 +451,10 @@ def _steger_setup(img, ex):
     r = np.rint(ex.v).astype(np.intp)
     seg = ex.segment.astype(np.int64)
     *_, inner = _segment_rows(seg, r, h + 2 * R + 2, length)
-    hp, put, pvt, g, _ = (a.copy() for a in _highpass_and_tensor(img, sw, R, length))
-    mask, opened, *_ = (a.copy() for a in _dot_mask(hp, length, 3.0 * noise_from_difference(img)))
+    hp, put, pvt, g = _highpass_and_tensor(img, sw, R, length)
+    tau = 3.0 * noise_from_difference(img)
+    opened = stripe_opening(hp, length, tau)
+    mask = dot_mask(hp, opened, tau)
     active = (seg >= 0) & (inner >= 0)
 
     def slope():

@@ -11,6 +11,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from multislit.stripes.slope import LEAN_DECIMATION, lean_map, slope_sigma
+
 
 def _running_extreme(x: NDArray, length: int, op: str) -> NDArray:
     """Min (``op='min'``) or max over a centred vertical window of odd ``length`` (per column).
@@ -173,3 +175,25 @@ def follow_stripe_opening(
     line[line == mid] = -1
     offs, count = _follow_offsets(int(length))
     _follow_cells(hp, opened, line, int(decimation), offs, count, float(tau))
+
+
+def stripe_opening(hp: NDArray, length: int, tau: float) -> NDArray:
+    """The opening that finds the dots: ``hp``'s grey opening with a line of ``length`` px,
+    vertical (:func:`vertical_opening`), along the stripe where it leans
+    (:func:`follow_stripe_opening` at the pixels the vertical one lowers by more than the dot
+    threshold ``tau``; the direction from :func:`~multislit.stripes.slope.lean_map`).
+
+    Parameters
+    ----------
+    hp : (H, W) highpass image (uint8, uint16 or float32)
+    length : int, px, the line's length
+    tau : float, intensity units, the dot threshold above the opening
+
+    Returns
+    -------
+    (H, W) the opening, dtype of ``hp``
+    """
+    opened = vertical_opening(hp, length)
+    angles = lean_map(hp, slope_sigma(length))
+    follow_stripe_opening(hp, opened, length, angles, LEAN_DECIMATION, tau)
+    return opened

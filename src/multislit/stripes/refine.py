@@ -10,10 +10,15 @@ import scipy.stats
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.openings import follow_stripe_opening, vertical_opening
-from multislit.stripes.separation import fill_dots, noise_from_difference, row_median_background
+from multislit.stripes.openings import stripe_opening
+from multislit.stripes.separation import (
+    dot_mask,
+    fill_dots,
+    noise_from_difference,
+    row_median_background,
+)
 from multislit.stripes.sizes import FWHM_PER_SIGMA, median_stride, opening_length
-from multislit.stripes.slope import LEAN_DECIMATION, lean_map, reflect101, slope_sigma, stripe_slope
+from multislit.stripes.slope import reflect101, slope_sigma, stripe_slope
 from multislit.stripes.validation import SlitExtractionError, as_image, int_at_least, positive_px
 
 F32 = NDArray[np.float32]
@@ -66,10 +71,7 @@ def refine_slit_image(
     noise = noise_from_difference(img)
     length = opening_length(dot_size_px)
     slope = stripe_slope(hp, slope_sigma(length))
-    opened = vertical_opening(hp, length)
-    ang = lean_map(hp, slope_sigma(length))
-    follow_stripe_opening(hp, opened, length, ang, LEAN_DECIMATION, 3.0 * noise)
-    return fill_dots(hp, opened, 3.0 * noise, length, slope)
+    return fill_dots(hp, stripe_opening(hp, length, 3.0 * noise), 3.0 * noise, length, slope)
 
 
 def refine_half_rows(stripe_width_px: float) -> int:
@@ -183,15 +185,18 @@ def refine_centres(
     # Steger's centres of the points that can take part in a fit (on a segment, not at its end),
     # on the slit image of refine_slit_image, made only in their windows
     length = opening_length(ds)
-    hp, put, pvt, g, free_t = _highpass_and_tensor(img, sw, R, length)
+    hp, put, pvt, g = _highpass_and_tensor(img, sw, R, length)
     active = (seg >= 0) & (inner >= 0)
-    mask, opened, slit, free = _dot_mask(hp, length, 3.0 * noise_from_difference(img))
-    # work arrays of the compiled kernel (the free arrays above): the slit image, the highpass
-    # off the dots (a streaming copy), the dots refilled only where the points' windows read
-    # them; the slope's Gaussian only where those refills need it
-    np.copyto(slit, hp)
+    tau = 3.0 * noise_from_difference(img)
+    opened = stripe_opening(hp, length, tau)
+    mask = dot_mask(hp, opened, tau)
+    # work arrays of the compiled kernel: the slit image, the highpass with the dots refilled
+    # only where the points' windows read them; the slope's Gaussian only where those refills
+    # need it
+    slit = hp.copy()
     h_blocks = -(-h // _SLOPE_BLOCK)
-    slope = (put, pvt, g, free_t, free.reshape(w, h), np.zeros((w, h_blocks), np.uint8))
+    slope = (put, pvt, g, np.empty((w, h), np.float32), np.empty((w, h), np.float32))
+    slope += (np.zeros((w, h_blocks), np.uint8),)
     rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
     _refill_dots(hp, mask, opened, slope, slit, uu, r, active, rad, length)
     m, row_ok = _steger_kernel(slit, uu, r, active, ss, max_shift_px)
@@ -228,50 +233,30 @@ def _pick_curved(
     return _curved_kernel(order, sk, delta1, delta2, d, gain, s2, _CHI2_CURVED, R)
 
 
-def _highpass_and_tensor(
-    img: NDArray, sw: float, R: int, length: int
-) -> tuple[F32, F32, F32, F32, F32]:
+def _highpass_and_tensor(img: NDArray, sw: float, R: int, length: int) -> tuple[F32, F32, F32, F32]:
     """The highpass of :func:`refine_slit_image` (image minus its row median background
     averaged over 2 R + 1 rows and 2 :func:`median_stride` + 1 columns), (H, W) float32; the
-    structure tensor products gu^2 and gu gv of :func:`~multislit.stripes.slope.stripe_slope` on it, transposed (W, H)
-    float32; the Gaussian (float32) that integrates them; and a free (W, H) float32 array."""
-    h, w = img.shape
+    structure tensor products gu^2 and gu gv of :func:`~multislit.stripes.slope.stripe_slope`
+    on it, transposed (W, H) float32; and the Gaussian (float32) that integrates them."""
     stride = median_stride(sw)
     # the median of integer data is exact in its own type; the box mean as cv2.blur's
     bg = row_median_background(img, stride)
     ksize = (2 * stride + 1, 2 * R + 1)
-    hp = np.empty((h, w), np.float32)
-    hp = cv2.boxFilter(bg, cv2.CV_32F, ksize, dst=hp, normalize=True, borderType=cv2.BORDER_REFLECT)
+    hp = cv2.boxFilter(bg, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_REFLECT)
     # the highpass in place of the background
     if img.dtype != np.float32:
         hp = cv2.subtract(img, hp, dst=hp, dtype=cv2.CV_32F)
     else:
         hp = np.subtract(img, hp, out=hp)
     # the products transposed (W, H): the slope's Gaussian runs along their rows
-    hpt = cv2.transpose(hp, dst=np.empty((w, h), np.float32))
-    gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, dst=np.empty((w, h), np.float32), ksize=3)
-    gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, dst=np.empty((w, h), np.float32), ksize=3)
+    hpt = cv2.transpose(hp)
+    gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, ksize=3)
+    gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, ksize=3)
     sig = slope_sigma(length)
     taps = round(sig * 8 + 1) | 1  # cv2.GaussianBlur's kernel size for float data
     g = cv2.getGaussianKernel(taps, sig, cv2.CV_32F).ravel()
     pvt = cv2.multiply(gu, gv, dst=gv)
-    return hp, cv2.multiply(gu, gu, dst=gu), pvt, g, hpt
-
-
-def _dot_mask(hp: F32, length: int, tau: float) -> tuple[NDArray[np.uint8], F32, F32, F32]:
-    """The dot mask of :func:`fill_dots` (uint8, 255 on dots) and the opening it is found
-    with (along the stripes where they lean, as the extraction's), both (H, W); and two free
-    (H, W) float32 arrays."""
-    shape = hp.shape
-    opened = vertical_opening(hp, length)
-    follow_stripe_opening(
-        hp, opened, length, lean_map(hp, slope_sigma(length)), LEAN_DECIMATION, tau
-    )
-    diff = cv2.subtract(hp, opened, dst=np.empty(shape, np.float32))
-    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau, dst=np.empty(shape, np.float32))
-    mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=np.empty(shape, np.uint8))
-    dots = cv2.dilate(mask, np.ones((3, 3), np.uint8), dst=np.empty(shape, np.uint8))
-    return dots, opened, diff, thr
+    return hp, cv2.multiply(gu, gu, dst=gu), pvt, g
 
 
 def _check_points(

@@ -11,14 +11,14 @@ from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.openings import follow_stripe_opening, vertical_opening
+from multislit.stripes.openings import stripe_opening, vertical_opening
 from multislit.stripes.sizes import (
     estimate_dot_size,
     estimate_stripe_width,
     median_stride,
     opening_length,
 )
-from multislit.stripes.slope import LEAN_DECIMATION, _slopes_at, lean_map, reflect101, slope_sigma
+from multislit.stripes.slope import _slopes_at, reflect101, slope_sigma
 from multislit.stripes.validation import SlitExtractionError, as_image, positive_px
 
 F32 = NDArray[np.float32]
@@ -326,8 +326,9 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
             out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
 
 
-def _dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
-    """(H, W) uint8, 255 on the dot pixels :func:`fill_dots` refills."""
+def dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
+    """(H, W) uint8, 255 on the dot pixels :func:`fill_dots` refills: where ``opened`` lies
+    below ``hp`` by more than ``tau`` plus 5 % of itself, widened by 1 px for the dots' tails."""
     diff = cv2.subtract(hp, opened)
     # + 5 % of the opening: the opening flattens the top of a tilted stripe by
     # A (1 - exp(-(s (L - 1) / 2)^2 / (2 sigma^2))), ~2.5 % of its peak A at slope s = 0.1; that
@@ -344,7 +345,7 @@ def _fill(
     integration scale (px, float) of the structure tensor that gives the slope where a run
     needs it (:func:`_slopes_at`)."""
     out = hp.copy()
-    mask = _dot_mask(hp, opened, tau)
+    mask = dot_mask(hp, opened, tau)
     h, w = mask.shape
     words = mask.view(np.uint64) if w % 8 == 0 else np.zeros((h, 0), np.uint64)
     cols, starts, stops = _mask_runs_v(mask, words, max(cv2.countNonZero(mask), 1))
@@ -463,11 +464,8 @@ def separate_validated(
         np.maximum(hp, 0, out=hp)
     noise = noise_from_difference(img)
     length = opening_length(dot_size_px)
-    opened = vertical_opening(hp, length)
-    # where a stripe leans too far for the vertical line, the opening follows the stripe
-    follow_stripe_opening(
-        hp, opened, length, lean_map(hp, slope_sigma(length)), LEAN_DECIMATION, 3.0 * noise
-    )
+    # vertical, and along the stripe where it leans too far for the vertical line
+    opened = stripe_opening(hp, length, 3.0 * noise)
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)
