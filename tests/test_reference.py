@@ -148,8 +148,12 @@ def test_reference_keeps_derived_arrays(scenes_reference, tmp_path):
     assert sums.shape == (ref.dots.shape[0], w - 10, h - 16, len(WINDOW_SUMS))  # x-major
     assert ref.window_sums(5, 8) is sums and not sums.flags.writeable
     assert np.array_equal(sums[1].transpose(1, 0, 2), window_sums(ref.dots[1], 5, 8))
-    dt = ref.dots_transposed()
-    assert dt.flags.c_contiguous and np.array_equal(dt[2], ref.dots[2].T)
+    dt = ref.padded_dots(transposed=True)
+    assert ref.padded_dots(transposed=True) is dt and not dt.flags.writeable
+    assert dt.flags.c_contiguous and np.array_equal(dt[2, :, :h], ref.dots[2].T)
+    assert not dt[:, :, h:].any()  # the padding after each row is zeros
+    d = ref.padded_dots()
+    assert np.array_equal(d[:, :, :w], ref.dots) and not d[:, :, w:].any()
     # the cache is not part of the saved file; a loaded set builds its own
     p = tmp_path / "ref.npz"
     ref.save(p)

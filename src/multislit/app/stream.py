@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from multislit.calibrate import Calibration
 from multislit.errors import MeasurementError
-from multislit.identify import ReferenceSet, capture_reference, template_size
+from multislit.identify import ReferenceSet, capture_reference, prepare_scoring
 from multislit.io import Capture, json_safe, write_ply
 from multislit.io.sources import FrameSource, open_source
 from multislit.reconstruct import ScanResult, load_capture_calibration, scan_image
@@ -233,11 +233,9 @@ _WORKER: dict[str, Any] = {}
 
 def precompute_reference(reference: ReferenceSet) -> ReferenceSet:
     """``reference`` with the data identification derives from it (window sums of the dot
-    images, their transposed copy) computed now, so that it travels with the set to worker
+    images, their padded copy) computed now, so that it travels with the set to worker
     processes instead of being computed again in each."""
-    reference.window_sums(*template_size(reference))
-    reference.dots_transposed()
-    return reference
+    return prepare_scoring(reference)
 
 
 def _init_worker(reference: ReferenceSet, calibration: Calibration) -> None:

@@ -12,13 +12,13 @@
   order rules.
 """
 
-from multislit.identify.labelling import Identification, identify
-from multislit.identify.matching import template_size
+from multislit.identify.labelling import Identification, compile_kernels, identify
+from multislit.identify.matching import prepare_scoring, template_size
 from multislit.identify.order import OrderParams, apply_run_offsets, row_runs, run_offsets
 from multislit.identify.patches import (
     WINDOW_SUMS,
+    bilinear_ncc,
     bilinear_patch_moments,
-    compile_kernels,
     normalise_patches,
     sample_patches,
     sample_sheared_patches,
@@ -46,6 +46,7 @@ __all__ = [
     "capture_reference",
     "ReferenceSet",
     "template_size",
+    "prepare_scoring",
     "split_at_brightness_steps",
     "OrderParams",
     "CURVE_DEGREE",
@@ -60,4 +61,5 @@ __all__ = [
     "WINDOW_SUMS",
     "window_sums",
     "bilinear_patch_moments",
+    "bilinear_ncc",
 ]

@@ -16,6 +16,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
@@ -29,6 +30,8 @@ from multislit.identify.order import (
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.segments import (
     band_samples,
+    by_segment,
+    group_order,
     near_segment_ends,
     split_at_brightness_steps,
     split_at_winner_changes,
@@ -130,6 +133,30 @@ def _mean_difference(
     return dm, np.sqrt(ss / np.maximum(n - 1, 1)) / np.sqrt(n)
 
 
+@njit(cache=True)
+def _scored(scores):
+    """(M,) bool: the rows of ``scores`` (M, N) with a finite score (a candidate)."""
+    out = np.zeros(scores.shape[0], np.bool_)
+    for i in range(scores.shape[0]):
+        for j in range(scores.shape[1]):
+            if np.isfinite(scores[i, j]):
+                out[i] = True
+                break
+    return out
+
+
+@njit(cache=True)
+def _filled_rows(scores, rows, fill):
+    """(R, N) float64: the rows ``rows`` (R,) of ``scores`` (M, N), ``fill`` for the scores
+    that are not finite."""
+    out = np.empty((len(rows), scores.shape[1]))
+    for i in range(len(rows)):
+        for j in range(scores.shape[1]):
+            x = scores[rows[i], j]
+            out[i, j] = x if np.isfinite(x) else fill
+    return out
+
+
 def _segment_votes(
     seg_of_sample: I64, scores: F64, means: dict | None = None
 ) -> dict[int, tuple[int, float, float, int]]:
@@ -142,20 +169,21 @@ def _segment_votes(
     if len(scores) == 0:
         return out
     N = scores.shape[1]
-    good = np.isfinite(scores).any(axis=1)
-    sids = np.unique(seg_of_sample)
-    for sid in np.setdiff1d(sids, seg_of_sample[good]):
+    good = _scored(scores)
+    lo = int(seg_of_sample.min())
+    key = seg_of_sample - lo  # >= 0
+    n_all = np.bincount(key)
+    n_good = np.bincount(key[good], minlength=len(n_all))
+    for sid in np.flatnonzero((n_all > 0) & (n_good == 0)) + lo:
         out[int(sid)] = (-1, 0.0, np.nan, 0)
-    rows = np.flatnonzero(good)
+    rows = group_order(np.where(good, key, -1))  # by segment, then as given
     if rows.size == 0:
         return out
-    rows = rows[np.argsort(seg_of_sample[rows], kind="stable")]
     s_sorted = seg_of_sample[rows]
     starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
     n = np.diff(np.r_[starts, len(rows)])
-    S = scores[rows]
     # a hypothesis without a candidate counts as a bad match
-    Sz = np.where(np.isfinite(S), S, _NO_CANDIDATE)
+    Sz = _filled_rows(scores, rows, _NO_CANDIDATE)
     mean = np.add.reduceat(Sz, starts, axis=0) / n[:, None]  # (G, N)
     k1 = np.argmax(mean, axis=1)
     g = np.arange(len(starts))
@@ -262,7 +290,7 @@ def _identify(
     slit = np.full(K, -1, np.int64)
     conf = np.zeros(K)
     seg = ex.segment.astype(np.int64)
-    n_seg = int(len(np.unique(seg[seg >= 0])))
+    n_seg = int(np.count_nonzero(np.bincount(seg[seg >= 0])))
     if K == 0 or n_seg == 0:
         return Identification(
             ex.u,
@@ -415,7 +443,7 @@ def _segment_decisions(
     dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0, "order": 0}
     accepted: dict[int, tuple[int, float]] = {}
     dot_votes: dict[int, tuple[int, float, F64]] = {}  # of the segments dropped
-    for sid in np.unique(seg[seg >= 0]):
+    for sid in np.flatnonzero(np.bincount(seg[seg >= 0])):
         k, c, m1, n = votes.get(int(sid), (-1, 0.0, np.nan, 0))
         low_confidence = False
         if n < _MIN_SAMPLES:
@@ -440,6 +468,34 @@ def _segment_decisions(
     return lut_k, lut_c, dot_votes, dropped
 
 
+@njit(cache=True)
+def _rows_to_sample(order, seg, v, sample):
+    """(K,) float64: per point, the rows (``|dv|``, px) to the nearest point of its segment
+    flagged in ``sample`` (K,) bool (inf: none); ``order`` holds the linked points by
+    (segment, v) (:func:`~.segments.by_segment`)."""
+    out = np.full(len(seg), np.inf)
+    n = len(order)
+    last = -1  # forward: the nearest sample at or before, backward: at or after
+    for t in range(n):
+        i = order[t]
+        if last >= 0 and seg[last] != seg[i]:
+            last = -1
+        if sample[i]:
+            last = i
+        if last >= 0:
+            out[i] = abs(v[last] - v[i])
+    last = -1
+    for t in range(n - 1, -1, -1):
+        i = order[t]
+        if last >= 0 and seg[last] != seg[i]:
+            last = -1
+        if sample[i]:
+            last = i
+        if last >= 0:
+            out[i] = min(out[i], abs(v[last] - v[i]))
+    return out
+
+
 def _vouched_points(
     ex: SlitExtraction,
     seg: I64,
@@ -453,18 +509,9 @@ def _vouched_points(
     sample of their segment, and not in the rows at the segment's ends (where it meets another
     surface or slit, the centre mixes two stripes; :func:`~.segments.near_segment_ends`)."""
     has = seg >= 0
-    usable = np.isfinite(scores).any(axis=1)
-    reach = np.full(len(seg), np.inf)
-    if usable.any():
-        us = si[usable]
-        o = np.lexsort((ex.v[us], seg[us]))
-        us = us[o]
-        key_s = seg[us].astype(float) * 1e6 + ex.v[us]
-        key_p = seg.astype(float) * 1e6 + ex.v
-        j = np.clip(np.searchsorted(key_s, key_p), 1, len(us) - 1)
-        for jj in (j - 1, j):
-            same = seg[us[jj]] == seg
-            reach = np.where(same, np.minimum(reach, np.abs(ex.v[us[jj]] - ex.v)), reach)
+    usable = np.zeros(len(seg), bool)
+    usable[si[_scored(scores)]] = True
+    reach = _rows_to_sample(by_segment(seg, ex.v), seg, ex.v.astype(np.float64), usable)
     has &= reach <= max_reach
     if has.any():
         has &= ~near_segment_ends(ex.u, ex.v, seg, lut_k, _TRIM_ROWS, _junction_rows(hh))
@@ -487,24 +534,32 @@ def _contradicted_by_dots(
     lab = np.flatnonzero((slit >= 0) & (seg >= 0))
     if lab.size == 0 or len(si) == 0:
         return out
-    # the (segment, label) pairs, and for each the samples of its segment
-    pairs, point_pair = np.unique(np.c_[seg[lab], slit[lab]], axis=0, return_inverse=True)
+    # the (segment, label) pairs (by segment, then label), and for each the samples of its
+    # segment (in their order)
+    n_lab = int(slit[lab].max()) + 1
+    key = seg[lab] * n_lab + slit[lab]
+    present = np.zeros(int(key.max()) + 1, bool)
+    present[key] = True
+    pair_key = np.flatnonzero(present)
+    point_pair = (np.cumsum(present) - 1)[key]
+    pairs = np.c_[pair_key // n_lab, pair_key % n_lab]
     ss = seg[si]
-    order = np.argsort(ss, kind="stable")
-    lo = np.searchsorted(ss[order], pairs[:, 0], side="left")
-    n = np.searchsorted(ss[order], pairs[:, 0], side="right") - lo
+    order = group_order(ss)
+    n_per_seg = np.bincount(ss[order], minlength=int(pairs[-1, 0]) + 1)
+    lo = (np.cumsum(n_per_seg) - n_per_seg)[pairs[:, 0]]
+    n = n_per_seg[pairs[:, 0]]
     has = n > 0
     if not has.any():
         return out
     starts = np.r_[0, np.cumsum(n[has])[:-1]]
-    j = order[np.concatenate([np.arange(a, a + m) for a, m in zip(lo[has], n[has], strict=True)])]
-    X = np.where(np.isfinite(scores[j]), scores[j], _NO_CANDIDATE)
+    j = order[np.arange(int(n[has].sum())) + np.repeat(lo[has] - starts, n[has])]
+    X = _filled_rows(scores, j, _NO_CANDIDATE)
     mean = np.add.reduceat(X, starts, axis=0) / n[has][:, None]
     dm, se = _mean_difference(X, starts, n[has], np.argmax(mean, axis=1), pairs[has, 1])
     se = np.where(n[has] > 1, se, _ONE_SAMPLE_SE)  # one sample: no spread to measure
     bad_pair = np.zeros(len(pairs), bool)
     bad_pair[np.flatnonzero(has)] = dm > _VETO_SE * se + _VETO_TOLERANCE
-    out[lab] = bad_pair[point_pair.ravel()]
+    out[lab] = bad_pair[point_pair]
     return out
 
 
@@ -524,7 +579,8 @@ def _drop_out_of_order(
     left out (a segment may keep its other rows: at an object's edge the order breaks in the
     edge's rows only); a segment left with none of its points is dropped. Updates ``slit``,
     ``conf``, ``has``, ``lut_k``, ``lut_c`` and ``dropped`` in place."""
-    before = np.unique(seg[(slit >= 0) & (seg >= 0)])
+    n_ids = int(seg.max()) + 1
+    before = np.bincount(seg[(slit >= 0) & (seg >= 0)], minlength=n_ids) > 0
     for _ in range(10):
         a, b = order_violations(ex.u, ex.v, slit, seg, 1.5 * spacing_px)
         if a.size == 0:
@@ -533,7 +589,9 @@ def _drop_out_of_order(
         slit[out] = -1
         conf[out] = 0.0
         has[out] = False
-    gone = np.setdiff1d(before, seg[(slit >= 0) & (seg >= 0)])
+    gone = np.flatnonzero(
+        before & (np.bincount(seg[(slit >= 0) & (seg >= 0)], minlength=n_ids) == 0)
+    )
     lut_k[gone] = -1
     lut_c[gone] = 0.0
     dropped["order"] += int(gone.size)
@@ -582,3 +640,45 @@ def _apply_order_rules(
     # stripes, gives another slit than its label is left out
     left_out = (slit >= 0) & (order.inside >= 0) & (order.inside != slit)
     slit[left_out] = -1
+
+
+def compile_kernels() -> None:
+    """Compile the identification's Numba kernels now.
+
+    Numba compiles each kernel on first use (seconds) and caches the machine code on disk
+    beside the package, so only the first run after an install pays it. ``make demo`` and
+    ``make test`` call this once after installing. It runs :func:`identify` on a small
+    synthetic frame (five slits, two flat references), once with dots beside every stripe and
+    once with one stripe's dots missing (so the order fills it), after the reference
+    preparation's patch sampler (:func:`~multislit.identify.patches.compile_kernels`).
+    """
+    from multislit.identify.patches import compile_kernels as compile_patch_kernels
+
+    compile_patch_kernels()
+    w, h, n, spacing, shift = 160, 120, 5, 25.0, 3
+    rng = np.random.default_rng(0)
+    dots = np.zeros((h, w), np.float32)
+    for y, x in zip(rng.integers(0, h - 2, 400), rng.integers(0, w - 2, 400), strict=True):
+        dots[y : y + 2, x : x + 2] = 100.0
+    us = 30.0 + spacing * np.arange(n)
+    curves = np.zeros((2, n, 4))
+    curves[0, :, -1] = us
+    curves[1, :, -1] = us + shift
+    reference = ReferenceSet(
+        (w, h),
+        n,
+        ("near", "far"),
+        curves,
+        np.tile([0.0, h - 1.0], (2, n, 1)),
+        np.stack([dots, np.roll(dots, shift, axis=1)]),
+        np.array([1e5, h / 2, 1.0]),  # the dots move along the rows
+        spacing,
+        3.0,
+        2.0,
+        0.1,
+        0.02,
+    )
+    stripes = 200.0 * np.exp(-0.5 * ((np.arange(w) - us[:, None] - 1) / 1.3) ** 2).sum(axis=0)
+    for scan_dots in (dots, np.where(np.abs(np.arange(w) - us[2]) < 12, 0, dots)):
+        image = np.clip(10.0 + 1.2 * scan_dots + stripes, 0, 255).astype(np.uint8)
+        identify(image, reference)

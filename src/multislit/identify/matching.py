@@ -13,10 +13,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from multislit.identify.patches import (
-    bilinear_patch_moments,
+    bilinear_ncc,
     normalise_patches,
     sample_patches,
     sample_sheared_patches,
@@ -37,9 +38,6 @@ _TEMPLATE_HALF_WIDTH = 0.40
 #: The template's height is chosen to hold about this many dots (from the dot density measured
 #: in the references), between 0.5 and 4 slit spacings.
 _TEMPLATE_DOTS = 12.0
-#: Most sample points whose reference windows are gathered at once when scoring (bounds memory,
-#: not results).
-_CHUNK = 400
 
 
 @dataclass(frozen=True)
@@ -101,6 +99,19 @@ def template_size(reference: ReferenceSet) -> tuple[int, int]:
     return _Options().template_size(reference)
 
 
+@njit(cache=True)
+def _sorted_positions(keys, want, pos):
+    """``pos`` = ``np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)`` for rows of
+    ``want`` (M, J) that increase along each row (one binary search per row, then a walk)."""
+    K = keys.size
+    for m in range(want.shape[0]):
+        p = np.searchsorted(keys, want[m, 0])
+        for j in range(want.shape[1]):
+            while p < K and keys[p] < want[m, j]:
+                p += 1
+            pos[m, j] = min(p, K - 1)
+
+
 def template_row_shift(
     u: F64, v: F64, seg: I64, si: NDArray[np.intp], ref: ReferenceSet, hh: int, mode: str
 ) -> F64 | None:
@@ -120,7 +131,8 @@ def template_row_shift(
     span = float(np.ceil(v.max()) + 2 * hh + 2)
     keys = seg[order] * span + np.rint(v[order])
     want = (seg[si] * span + np.rint(v[si]))[:, None] + dy[None, :]
-    pos = np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)
+    pos = np.empty(want.shape, np.intp)
+    _sorted_positions(keys, want, pos)
     found = keys[pos] == want
     w = found.astype(np.float64)
     uu = np.where(found, u[order[pos]] - u[si][:, None], 0.0)
@@ -244,111 +256,134 @@ def _candidates(
     w, h = ref.image_size
     R, N = ref.curves.shape[:2]
     M = len(uv)
-    vv = np.empty((R, M, N))
-    uu = np.empty((R, M, N))
     step = max(1, 2**16 // (R * N))  # samples per block: the Newton steps' arrays stay in cache
-    for a in range(0, M, step):
-        sl = slice(a, a + step)
-        vv[:, sl] = intersect_line_curves(
-            lines[None, sl, None, :],
-            ref.curves[:, None, :, :],
-            np.broadcast_to(uv[None, sl, 1:2], (R, len(uv[sl]), N)),
-        )
-        uu[:, sl] = curve_u(ref.curves[:, None, :, :], vv[:, sl])
-    lo = ref.vrange[:, None, :, 0]
-    hi = ref.vrange[:, None, :, 1]
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(vv) & (vv >= lo - hh) & (vv <= hi + hh)
-        ok &= (uu >= hw) & (uu <= w - 1 - hw) & (vv >= hh) & (vv <= h - 1 - hh)
+    vv = intersect_line_curves(
+        lines[None, :, None, :],
+        ref.curves[:, None, :, :],
+        np.broadcast_to(uv[None, :, 1:2], (R, M, N)),
+        block=step,
+    )
+    uu = np.empty((R, M, N))
+    _mask_candidates(ref.curves, ref.vrange, hw, hh, w, h, vv, uu)
     if np.isfinite(depth_margin):
-        ok &= _in_volume(ref, uv, depth_margin)[None]
-    return np.where(ok, uu, np.nan), np.where(ok, vv, np.nan)
+        out = ~_in_volume(ref, uv, depth_margin)[None]
+        uu = np.where(out, np.nan, uu)
+        vv = np.where(out, np.nan, vv)
+    return uu, vv
 
 
-#: Bytes of reference windows gathered at once when scoring (bounds memory, stays in cache).
-_GATHER_BYTES = 4 << 20
+@njit(cache=True)
+def _mask_candidates(curves, vrange, hw, hh, w, h, vv, uu):
+    """:func:`_candidates`' checks, in place: ``uu`` (R, M, N) = the curves (R, N, D+1) at
+    the rows ``vv`` (the float64 operations of :func:`curve_u`), both NaN where the
+    intersection is missing, beyond the curve's rows ``vrange`` (R, N, 2) +- ``hh``, or where
+    a template of half size ``hw``, ``hh`` would leave the ``w`` x ``h`` image."""
+    R, M, N = vv.shape
+    for r in range(R):
+        for m in range(M):
+            for n in range(N):
+                x = vv[r, m, n]
+                u = 0.0
+                for e in range(curves.shape[2]):
+                    u = u * x + curves[r, n, e]
+                ok = np.isfinite(x) and vrange[r, n, 0] - hh <= x <= vrange[r, n, 1] + hh
+                ok = ok and hw <= u <= w - 1 - hw and hh <= x <= h - 1 - hh
+                uu[r, m, n] = u if ok else np.nan
+                if not ok:
+                    vv[r, m, n] = np.nan
+
+
+#: Squared distances closer than this share are compared by their hypot (which decides).
+_NEAR_TIE = 1e-9
+
+
+@njit(cache=True)
+def _nearest_candidates(uu, vv, uv, r_sel, cu, cv, valid):
+    """Per sample and slit, the reference whose candidate (``uu``, ``vv`` (R, M, N), NaN: none)
+    lies nearest the sample ``uv`` (M, 2) (by ``math.hypot``, the first of equals; 0 if none):
+    its index ``r_sel`` and the candidate ``cu``, ``cv`` (M, N); ``valid`` (M, N): a candidate
+    in any reference. (Squared distances order the candidates; only near ties take the
+    hypot.)"""
+    R, M, N = vv.shape
+    for m in range(M):
+        for n in range(N):
+            best = np.inf
+            k = 0
+            any_ok = False
+            for r in range(R):
+                if not np.isfinite(vv[r, m, n]):
+                    continue
+                any_ok = True
+                du, dv = uu[r, m, n] - uv[m, 0], vv[r, m, n] - uv[m, 1]
+                d2 = du * du + dv * dv
+                if not np.isfinite(d2) or d2 > best * (1.0 + _NEAR_TIE):
+                    continue
+                if d2 < best * (1.0 - _NEAR_TIE) or math.hypot(du, dv) < math.hypot(
+                    uu[k, m, n] - uv[m, 0], vv[k, m, n] - uv[m, 1]
+                ):
+                    best = d2
+                    k = r
+            r_sel[m, n] = k
+            cu[m, n] = uu[k, m, n]
+            cv[m, n] = vv[k, m, n]
+            valid[m, n] = any_ok
 
 
 def _ncc_at(
     ref: ReferenceSet,
     sums: NDArray[np.float32],
-    tmpl: NDArray[np.float32],
+    patches: NDArray[np.float32],
     r: NDArray[np.intp],
     uu: F64,
     vv: F64,
     hw: int,
     hh: int,
-    max_block: int = 400,
 ) -> F64:
-    """NCC of each sample's template with bilinear reference patches at given centres.
-
-    Equal to ``normalise_patches(sample_patches(ref.dots[r], (uu, vv), hw, hh))`` dotted with
-    the template, without sampling the patches: the bilinear patch blends the four integer
-    windows at the corners of its pixel cell, so its dot product with the template is the same
-    blend of the template's dot products with those windows (one matrix product over one
-    gathered window a pixel larger), and its mean and norm follow from the reference's window
-    sums (:func:`~multislit.identify.patches.bilinear_patch_moments`).
+    """NCC of each sample's template (its patch, normalised) with bilinear reference patches
+    at given centres (:func:`~multislit.identify.patches.bilinear_ncc` on the reference's dot
+    images).
 
     Parameters
     ----------
     sums : (R, W', H', 6) float32, ``ref.window_sums(hw, hh)`` (x-major)
-    tmpl : (m, K) float32, normalised templates (:func:`~multislit.identify.patches.normalise_patches`)
+    patches : (m, 2*hh+1, 2*hw+1) float32, the samples' patches (the templates before
+        :func:`~multislit.identify.patches.normalise_patches`)
     r : (m, C) intp, reference image of each candidate
     uu, vv : (m, C) float64, px, patch centres, with the patch inside the image
     hw, hh : patch half sizes, px
-    max_block : most samples whose windows are gathered at once
 
     Returns
     -------
-    ncc : (m, C) float64, 0 for a flat (all equal) reference patch
+    ncc : (m, C) float64, 0 for a flat (all equal) reference patch or template
     """
-    m, C = r.shape
-    ph, pw = 2 * hh + 1, 2 * hw + 1
-    K = ph * pw
-    if m == 0 or C == 0:
-        return np.zeros((m, C))
-    x, y = uu - hw, vv - hh
-    ws, hs = sums.shape[1:3]  # x-major
-    x0 = np.minimum(np.floor(x), ws - 2).astype(np.intp)
-    y0 = np.minimum(np.floor(y), hs - 2).astype(np.intp)
-    fx, fy = x - x0, y - y0
-    # the template at the four corners of the cell, in a window one pixel larger; a tall patch
-    # is gathered from the transposed images (fewer, longer rows to copy)
-    tall = ph > pw
-    t2 = tmpl.reshape(m, ph, pw)
-    if tall:
-        t2 = t2.transpose(0, 2, 1)
-        src, idx = ref.dots_transposed(), (x0, y0)
-    else:
-        src, idx = ref.dots, (y0, x0)
-    n0, n1 = t2.shape[1:]
-    # corners in the order 00, 10, 01, 11 (x offset, y offset) -> offsets in the window layout
-    corners = [(ox, oy) if not tall else (oy, ox) for ox, oy in ((0, 0), (1, 0), (0, 1), (1, 1))]
-    win = np.lib.stride_tricks.sliding_window_view(src, (n0 + 1, n1 + 1), axis=(1, 2))
-    dots4 = np.empty((m, C, 4), np.float32)
-    step = max(1, min(max_block, _GATHER_BYTES // (C * (n0 + 1) * (n1 + 1) * 4)))
-    t4 = np.zeros((min(step, m), 4, n0 + 1, n1 + 1), np.float32)
-    for a in range(0, m, step):
-        sl = slice(a, a + step)
-        s_ = len(t2[sl])
-        for j, (d1, d0) in enumerate(corners):
-            t4[:s_, j, d0 : d0 + n0, d1 : d1 + n1] = t2[sl]  # (its other cells stay 0)
-        # slit by slit (consecutive samples' windows overlap in memory): (C, s, n0+1, n1+1)
-        g = win[r[sl].T, idx[0][sl].T, idx[1][sl].T]
-        np.matmul(
-            g.reshape(C, s_, -1).transpose(1, 0, 2),
-            t4[:s_].reshape(s_, 4, -1).transpose(0, 2, 1),
-            out=dots4[sl],
-        )
-    num = (1 - fy) * ((1 - fx) * dots4[..., 0] + fx * dots4[..., 1]) + fy * (
-        (1 - fx) * dots4[..., 2] + fx * dots4[..., 3]
-    )
-    # slit by slit: consecutive samples' patches lie close together in the x-major sums
-    s1, s2 = bilinear_patch_moments(sums, x.T.copy(), y.T.copy(), r.T.copy(), x_major=True)
-    s1, s2 = s1.T, s2.T
-    var = s2 - s1 * s1 / K
-    flat = var <= 1e-6 * np.maximum(s2, 1e-12)
-    return np.where(flat, 0.0, num / np.sqrt(np.where(flat, 1.0, var)))
+    images, images_t = _scoring_images(ref, hw, hh)
+    return bilinear_ncc(images, patches, r, uu - hw, vv - hh, sums, hw, hh, images_t=images_t)
+
+
+def _scoring_images(ref: ReferenceSet, hw: int, hh: int) -> tuple[NDArray, NDArray | None]:
+    """The reference's dot images as :func:`_ncc_at` reads them for templates of half size
+    ``hw`` x ``hh`` px: tall patches along their columns (the padded transposed copy), wide
+    ones along their rows (the padded copy)."""
+    if hh > hw:
+        return ref.dots, ref.padded_dots(transposed=True)
+    return ref.padded_dots(), None
+
+
+def prepare_scoring(reference: ReferenceSet) -> ReferenceSet:
+    """Compute now the data the scoring of :func:`identify`'s templates derives from
+    ``reference`` (the dot images' window sums and padded copy), which the set keeps.
+
+    Without this call they are made on the first scan. A set prepared before it is sent to
+    worker processes carries them along instead of each worker making its own.
+
+    Returns
+    -------
+    the same ``reference``
+    """
+    hw, hh = template_size(reference)
+    reference.window_sums(hw, hh)
+    _scoring_images(reference, hw, hh)
+    return reference
 
 
 def _hypotheses(
@@ -378,20 +413,22 @@ def _hypotheses(
     offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
     direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
     uu_all, vv_all = _candidates(ref, uv, lines, hw, hh, p.depth_margin)  # (R, M, N)
-    valid_any = np.isfinite(vv_all).any(axis=0)
-    if allowed is not None:
-        valid_any &= allowed
     if p.references == "nearest":
         # compare each hypothesis in the reference where its candidate lies nearest the
         # scan point: the board depth closest to the surface's, the least deformed dots
-        disp = np.hypot(uu_all - uv[None, :, 0:1], vv_all - uv[None, :, 1:2])
-        r_sel = np.argmin(np.where(np.isfinite(disp), disp, np.inf), axis=0)[:, :, None]
+        r_sel = np.empty((M, N, 1), np.intp)
+        cu, cv = np.empty((M, N, 1)), np.empty((M, N, 1))
+        valid_any = np.empty((M, N), np.bool_)
+        _nearest_candidates(uu_all, vv_all, uv, r_sel[..., 0], cu[..., 0], cv[..., 0], valid_any)
     else:
+        valid_any = np.isfinite(vv_all).any(axis=0)
         r_sel = np.broadcast_to(np.arange(R)[None, None, :], (M, N, R))
-    ii = np.arange(M)[:, None, None]
-    kk = np.arange(N)[None, :, None]
-    cu = uu_all[r_sel, ii, kk]  # (M, N, R') candidate centres
-    cv = vv_all[r_sel, ii, kk]
+        ii = np.arange(M)[:, None, None]
+        kk = np.arange(N)[None, :, None]
+        cu = uu_all[r_sel, ii, kk]  # (M, N, R') candidate centres
+        cv = vv_all[r_sel, ii, kk]
+    if allowed is not None:
+        valid_any &= allowed
     ok = np.isfinite(cv) & valid_any[:, :, None]
     # search along the epipolar line: (M, N, R', O)
     cu = cu[..., None] + offs * direction[:, None, None, 0:1]
@@ -476,7 +513,8 @@ def score_candidates(
             row_rise=row_shift * _dot_rise(lines)[:, None],
             col_scale=col_scale,
         )
-    tmpl = normalise_patches(patches)  # (M, K)
+    # a flat template (no dots around the point) says nothing
+    flat = ~np.any(patches != patches.reshape(M, -1)[:, :1, None], axis=(1, 2))
     rr_f = np.where(fast, rr, 0).reshape(M, -1)
     cu_f = np.where(fast, cu, hw).reshape(M, -1)
     cv_f = np.where(fast, cv, hh).reshape(M, -1)
@@ -485,25 +523,26 @@ def score_candidates(
     fast_flat = fast.reshape(M, -1)
     n_max = int(fast_flat.sum(axis=1).max())
     if n_max == fast_flat.shape[1]:
-        sc_flat[:] = _ncc_at(ref, sums, tmpl, rr_f, cu_f, cv_f, hw, hh, _CHUNK)
+        sc_flat[:] = _ncc_at(ref, sums, patches, rr_f, cu_f, cv_f, hw, hh)
     elif n_max > 0:
         # few hypotheses per sample (coarse to fine, missing candidates): score only those,
         # packed to the front of each sample's row
         cols = np.argsort(~fast_flat, axis=1, kind="stable")[:, :n_max]
         packed = [np.take_along_axis(a, cols, axis=1) for a in (rr_f, cu_f, cv_f)]
-        scored = _ncc_at(ref, sums, tmpl, *packed, hw, hh, _CHUNK)
+        scored = _ncc_at(ref, sums, patches, *packed, hw, hh)
         np.put_along_axis(sc_flat, cols, scored, axis=1)
     sc_flat[~fast_flat] = -np.inf
     if direct.any():
         di = np.nonzero(direct)
+        tmpl = np.zeros((M, patches[0].size), np.float32)
+        rows = np.unique(di[0])
+        tmpl[rows] = normalise_patches(patches[rows])
         for r in np.unique(rr[di]):
             sel = tuple(q[rr[di] == r] for q in di)
             pat = normalise_patches(sample_patches(ref.dots[r], np.c_[cu[sel], cv[sel]], hw, hh))
             sc[sel] = np.einsum("ij,ij->i", pat, tmpl[sel[0]])
     best = sc.reshape(M, N, -1).max(axis=2)
     blk = np.where(valid_any & np.isfinite(best), best, np.nan)
-    # a flat template (no dots around the point) says nothing
-    flat = ~np.any(tmpl != 0, axis=1)
     blk[flat] = np.nan
     scores[:] = blk
     return scores

@@ -19,7 +19,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
+
+from multislit.identify.segments import group_order
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -56,58 +59,156 @@ class OrderParams:
     match_px: float | None = None
 
 
-def _nanmedian_rows(a: F64) -> F64:
-    """``np.nanmedian(a, axis=1)`` of a narrow (n, w) array, NaN for all-NaN rows, no warning."""
-    a = np.sort(a, axis=1)  # NaN sort last
-    n = np.sum(~np.isnan(a), axis=1)
-    rows = np.arange(len(a))
-    lo = a[rows, np.maximum(n - 1, 0) // 2]
-    hi = a[rows, np.maximum(n, 1) // 2 * (n > 0)]
-    with np.errstate(invalid="ignore"):
-        return np.where(n > 0, 0.5 * (lo + hi), np.nan)
+@njit(cache=True)
+def _sort_rows(o, u, row):
+    """In place: ``o`` (item indices ordered by ``row``) sorted stably by ``u`` within each run
+    of equal ``row`` (NaN last, as ``np.lexsort``), by insertion (the rows are short and their
+    centres usually come in order already)."""
+    m = len(o)
+    i0 = 0
+    while i0 < m:
+        r0 = row[o[i0]]
+        i1 = i0 + 1
+        while i1 < m and (row[o[i1]] == r0 or (r0 != r0 and row[o[i1]] != row[o[i1]])):
+            i1 += 1
+        for a in range(i0 + 1, i1):
+            x = o[a]
+            ux = u[x]
+            b = a
+            while b > i0 and (ux < u[o[b - 1]] or (np.isnan(u[o[b - 1]]) and not np.isnan(ux))):
+                o[b] = o[b - 1]
+                b -= 1
+            o[b] = x
+        i0 = i1
+
+
+def by_row(u: F64, row: NDArray, idx: NDArray[np.intp]) -> NDArray[np.intp]:
+    """The items ``idx`` ordered by (``row``, ``u``, index): (n,) intp, the same as
+    ``idx[np.lexsort((u[idx], row[idx]))]``."""
+    order = idx[np.argsort(row[idx], kind="stable")]
+    _sort_rows(order, np.asarray(u, np.float64), row)
+    return order
+
+
+@njit(cache=True)
+def _median_of(buf, n):
+    """Median of ``buf[:n]`` (sorted in place), NaN for n = 0."""
+    if n == 0:
+        return np.nan
+    for a in range(1, n):
+        x = buf[a]
+        b = a
+        while b > 0 and buf[b - 1] > x:
+            buf[b] = buf[b - 1]
+            b -= 1
+        buf[b] = x
+    return 0.5 * (buf[(n - 1) // 2] + buf[n // 2])
+
+
+@njit(cache=True)
+def _nanmedian_rows(a):
+    """``np.nanmedian(a, axis=1)`` of a narrow (n, w) float64 array, NaN for all-NaN rows."""
+    out = np.empty(a.shape[0])
+    buf = np.empty(a.shape[1])
+    for i in range(a.shape[0]):
+        n = 0
+        for j in range(a.shape[1]):
+            if not np.isnan(a[i, j]):
+                buf[n] = a[i, j]
+                n += 1
+        out[i] = _median_of(buf, n)
+    return out
+
+
+@njit(cache=True)
+def _runs_in_rows(order, u, v, w, min_gap_ratio, max_gap_ratio, run, rank):
+    """:func:`row_runs` on the centres ``order`` (ordered by row, then u): fills ``run`` and
+    ``rank`` (K,) at the centres kept."""
+    m = len(order)
+    ng = max(m - 1, 0)  # gap i: between centres i and i + 1 (in order)
+    same = np.zeros(ng, np.bool_)
+    gap = np.full(ng, np.nan)
+    rowid = np.zeros(ng, np.int64)
+    for i in range(ng):
+        same[i] = v[order[i + 1]] == v[order[i]]
+        if same[i]:
+            gap[i] = u[order[i + 1]] - u[order[i]]
+        if i > 0:
+            rowid[i] = rowid[i - 1] + (0 if same[i - 1] else 1)
+    # a gap is judged against the local spacing: the smaller of the medians of the w gaps
+    # before and after it in its row
+    small = np.zeros(ng, np.bool_)
+    big = np.zeros(ng, np.bool_)
+    buf = np.empty(max(w, 1))
+    for i in range(ng):
+        n = 0
+        for j in range(max(i - w, 0), i):
+            if rowid[j] == rowid[i] and not np.isnan(gap[j]):
+                buf[n] = gap[j]
+                n += 1
+        before = _median_of(buf, n)
+        n = 0
+        for j in range(i + 1, min(i + w + 1, ng)):
+            if rowid[j] == rowid[i] and not np.isnan(gap[j]):
+                buf[n] = gap[j]
+                n += 1
+        after = _median_of(buf, n)
+        spacing = np.fmin(before, after)
+        small[i] = same[i] and gap[i] < min_gap_ratio * spacing
+        big[i] = not same[i] or not gap[i] <= max_gap_ratio * spacing
+    bad = np.zeros(m, np.bool_)  # double detections
+    for i in range(ng):
+        if small[i]:
+            bad[i] = True
+            bad[i + 1] = True
+    rid = -1
+    start = 0
+    for i in range(m):
+        if i == 0 or big[i - 1] or small[i - 1] or bad[i - 1] or bad[i]:  # cut before i
+            rid += 1
+            start = i
+        if not bad[i]:
+            run[order[i]] = rid
+            rank[order[i]] = i - start
 
 
 def row_runs(
     u: F64, v: F64, ok: NDArray[np.bool_], p: OrderParams
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Run id and rank in the run of each centre (-1 for centres left out)."""
+    """Run id and rank in the run of each centre (-1 for centres left out).
+
+    Parameters
+    ----------
+    u, v : (K,) float64, px, the centres (v: their row)
+    ok : (K,) bool, the centres to consider
+    p : the gap ratios and the spacing window
+
+    Returns
+    -------
+    run, rank : (K,) intp
+    """
     n = len(u)
     run = np.full(n, -1, np.intp)
     rank = np.full(n, -1, np.intp)
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return run, rank
-    order = idx[np.lexsort((u[idx], v[idx]))]
-    uu, vv = u[order], v[order]
-    m = len(order)
-    same = vv[1:] == vv[:-1]
-    gap = np.where(same, uu[1:] - uu[:-1], np.nan)  # gap i: between i and i+1
+    u = np.asarray(u, np.float64)
+    v = np.asarray(v, np.float64)
+    order = by_row(u, v, idx)
     # local spacing either side: median of the ``w`` gaps before / after in the row. A gap is
     # judged against the smaller one: where the spacing changes (a face edge) a hidden stripe
     # still makes the gap >= 2x the smaller spacing.
-    w = p.spacing_window
-    rowid = np.cumsum(np.r_[0, ~same])[:-1]  # row of each gap (gap i: centres i, i+1)
-    pad = np.concatenate([np.full(w, np.nan), gap, np.full(w, np.nan)])
-    rpad = np.concatenate([np.full(w, -1), rowid, np.full(w, -1)])
-    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * w + 1)
-    rwin = np.lib.stride_tricks.sliding_window_view(rpad, 2 * w + 1)
-    win = np.where(rwin == rowid[:, None], win, np.nan)
-    before = _nanmedian_rows(win[:, :w])  # all-NaN windows: NaN spacing
-    after = _nanmedian_rows(win[:, w + 1 :])
-    spacing = np.fmin(before, after)
-    small = same & (gap < p.min_gap_ratio * spacing)
-    big = ~same | ~(gap <= p.max_gap_ratio * spacing)  # NaN spacing (lonely pair): cut
-    bad = np.zeros(m, bool)
-    bad[:-1] |= small
-    bad[1:] |= small
-    cut = np.ones(m, bool)  # cut before centre i
-    cut[1:] = big | small | bad[:-1] | bad[1:]
-    rid = np.cumsum(cut) - 1
-    start = np.flatnonzero(cut)
-    rk = np.arange(m) - start[rid]
-    keep = ~bad
-    run[order[keep]] = rid[keep]
-    rank[order[keep]] = rk[keep]
+    _runs_in_rows(
+        order,
+        u,
+        v,
+        int(p.spacing_window),
+        float(p.min_gap_ratio),
+        float(p.max_gap_ratio),
+        run,
+        rank,
+    )
     return run, rank
 
 
@@ -126,22 +227,53 @@ def run_offsets(
     if not sel.any():
         return out
     r, off, wt = run[sel], vote[sel] - rank[sel], weight[sel]
-    lo = int(off.min())
-    span = int(off.max()) - lo + 1
-    key = r.astype(np.int64) * span + (off - lo)
-    uk, inv = np.unique(key, return_inverse=True)
-    kw = np.bincount(inv, weights=wt)
-    kc = np.bincount(inv)
-    kr = uk // span
-    total_w = np.bincount(r, weights=wt, minlength=n_runs)
-    # best key per run: sort by (run, weight) and take the last of each run
-    o = np.lexsort((kw, kr))
-    last = np.r_[kr[o][1:] != kr[o][:-1], True]
-    best = o[last]
-    br = kr[best]
-    ok = (kw[best] >= p.min_agree * total_w[br]) & (kc[best] >= p.min_votes)
-    out[br[ok]] = (uk[best][ok] % span + lo).astype(np.intp)
+    if r.max() >= n_runs:
+        raise ValueError(f"run_offsets: run ids go up to {r.max()} but n_runs is {n_runs}")
+    by_run = group_order(r)  # the votes of each run in their order
+    _best_offsets(
+        r.astype(np.int64),
+        off.astype(np.int64),
+        wt.astype(np.float64),
+        by_run,
+        float(p.min_agree),
+        int(p.min_votes),
+        out,
+    )
     return out
+
+
+@njit(cache=True)
+def _best_offsets(r, off, wt, by_run, min_agree, min_votes, out):
+    """:func:`run_offsets` on the votes (run ``r``, offset ``off``, weight ``wt``) taken in the
+    order ``by_run`` (by run, then as given): per run the offset of the largest total weight
+    (the largest such offset on ties), written to ``out`` where it holds ``min_agree`` of the
+    run's weight and ``min_votes`` votes."""
+    lo = off.min()
+    span = off.max() - lo + 1
+    kw = np.zeros(span)
+    kc = np.zeros(span, np.int64)
+    n = len(by_run)
+    i = 0
+    while i < n:
+        g = r[by_run[i]]
+        total = 0.0
+        j = i
+        while j < n and r[by_run[j]] == g:
+            x = by_run[j]
+            kw[off[x] - lo] += wt[x]
+            kc[off[x] - lo] += 1
+            total += wt[x]
+            j += 1
+        best = -1
+        for k in range(span):
+            if kc[k] > 0 and (best < 0 or kw[k] >= kw[best]):
+                best = k
+        if kw[best] >= min_agree * total and kc[best] >= min_votes:
+            out[g] = best + lo
+        for jj in range(i, j):
+            kw[off[by_run[jj]] - lo] = 0.0
+            kc[off[by_run[jj]] - lo] = 0
+        i = j
 
 
 def apply_run_offsets(
@@ -189,14 +321,72 @@ def order_violations(
     m = np.flatnonzero(slit >= 0)
     if m.size < 2:
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
-    row = np.round(v[m]).astype(np.int64)
-    o = np.lexsort((u[m], row))
-    idx, row = m[o], row[o]
+    row = np.zeros(len(v), np.int64)
+    row[m] = np.round(v[m])
+    idx = by_row(u, row, m)
+    row = row[idx]
     uu, ss, gg = u[idx], slit[idx], seg[idx]
     same = row[1:] == row[:-1]
     near = (uu[1:] - uu[:-1]) < max_gap_px
     bad = np.flatnonzero(same & near & (ss[1:] <= ss[:-1]) & (gg[1:] != gg[:-1]))
     return idx[bad], idx[bad + 1]
+
+
+@njit(cache=True)
+def _run_votes(run, rank, seg, voted, n_runs):
+    """The dot-identified (``voted``) centres of each row-run, walked in rank order (``run``
+    (K,) below ``n_runs``, -1: in no run; ranks unique within a run, as :func:`row_runs`
+    gives them; ``seg`` (K,) the centres' segment ids, >= -1).
+
+    Returns
+    -------
+    n_segs : (n_runs,) int64, number of different segments among the run's voted centres
+    lo, hi : (n_runs,) intp, the run's lowest and highest voted rank (max intp and -1: none)
+    left, right : (K,) intp, per centre the nearest voted centre of its run before it, and at
+        or after it (the centre itself if voted); -1: none
+    """
+    k = len(run)
+    base = np.zeros(n_runs + 1, np.int64)  # slots of run g: base[g] .. base[g + 1] - 1, by rank
+    n_ids = 1
+    for i in range(k):
+        if run[i] >= 0:
+            base[run[i] + 1] = max(base[run[i] + 1], rank[i] + 1)
+            n_ids = max(n_ids, seg[i] + 2)
+    for g in range(n_runs):
+        base[g + 1] += base[g]
+    slot = np.full(base[n_runs], -1, np.intp)
+    for i in range(k):
+        if run[i] >= 0:
+            slot[base[run[i]] + rank[i]] = i
+    n_segs = np.zeros(n_runs, np.int64)
+    lo = np.full(n_runs, np.iinfo(np.intp).max, np.intp)
+    hi = np.full(n_runs, -1, np.intp)
+    left = np.full(k, -1, np.intp)
+    right = np.full(k, -1, np.intp)
+    seen_in = np.full(n_ids, -1, np.int64)  # per segment id + 1: the last run it voted in
+    for g in range(n_runs):
+        prev = -1
+        for t in range(base[g], base[g + 1]):
+            i = slot[t]
+            if i < 0:
+                continue
+            left[i] = prev
+            if voted[i]:
+                prev = i
+                lo[g] = min(lo[g], rank[i])
+                hi[g] = max(hi[g], rank[i])
+                if seen_in[seg[i] + 1] != g:
+                    seen_in[seg[i] + 1] = g
+                    n_segs[g] += 1
+        nxt = -1
+        for t in range(base[g + 1] - 1, base[g] - 1, -1):
+            i = slot[t]
+            if i < 0:
+                continue
+            if voted[i]:
+                nxt = i
+            right[i] = nxt
+    return n_segs, lo, hi, left, right
 
 
 def _between_agreeing(
@@ -211,29 +401,24 @@ def _between_agreeing(
     difference, and ``lab`` is the left one's slit plus the rank step). A run's majority offset
     can disagree with the stripes right beside a point where a hidden slit leaves no gap wide
     enough to cut the run."""
-    out = np.zeros(len(run), bool)
-    vi = np.flatnonzero(voted)
-    if vi.size == 0:
-        return out
-    big = np.int64(rank.max()) + 2
-    key_v = run[vi].astype(np.int64) * big + rank[vi]
-    o = np.argsort(key_v, kind="stable")
-    vi, key_v = vi[o], key_v[o]
-    q = np.flatnonzero((run >= 0) & (lab >= 0))
-    if q.size == 0:
-        return out
-    key_q = run[q].astype(np.int64) * big + rank[q]
-    j = np.searchsorted(key_v, key_q)  # first voted at or after the point
-    has_l = j > 0
-    has_r = j < len(vi)
-    jl = np.clip(j - 1, 0, len(vi) - 1)
-    jr = np.clip(j, 0, len(vi) - 1)
-    left, right = vi[jl], vi[jr]
-    ok = has_l & has_r & (run[left] == run[q]) & (run[right] == run[q])
-    ok &= (vote[right] - vote[left]) == (rank[right] - rank[left])
-    ok &= lab[q] == vote[left] + (rank[q] - rank[left])
-    out[q] = ok
-    return out
+    n_runs = int(run.max()) + 1 if len(run) else 0
+    _, _, _, left, right = _run_votes(run, rank, np.zeros(len(run), np.int64), voted, n_runs)
+    return _agreeing(rank, vote, lab, left, right)
+
+
+def _agreeing(
+    rank: NDArray[np.intp],
+    vote: NDArray[np.intp],
+    lab: NDArray[np.intp],
+    left: NDArray[np.intp],
+    right: NDArray[np.intp],
+) -> NDArray[np.bool_]:
+    """:func:`_between_agreeing` from each point's nearest voted points ``left`` and ``right``
+    in its run (:func:`_run_votes`; -1: none)."""
+    a, b = np.maximum(left, 0), np.maximum(right, 0)
+    ok = (lab >= 0) & (left >= 0) & (right >= 0)
+    ok &= (vote[b] - vote[a]) == (rank[b] - rank[a])
+    return ok & (lab == vote[a] + (rank - rank[a]))
 
 
 class RowOrder(NamedTuple):
@@ -275,23 +460,17 @@ def order_labels(u: F64, v: F64, seg: I64, slit: I64, conf: F64, num_slits: int)
         return RowOrder(run, rank, none, none, none)
     vote = np.where(slit >= 0, slit, -1).astype(np.intp)
     offset = run_offsets(run, rank, vote, np.where(slit >= 0, conf, 0.0), n_runs, op)
-    # an offset must be confirmed by the dots of >= 2 different stripes (segments) of the run
     voted = (vote >= 0) & (run >= 0)
-    span = int(seg.max()) + 2
-    pairs = np.unique(run[voted].astype(np.int64) * span + (seg[voted] + 1))
-    n_seg_votes = np.bincount(pairs // span, minlength=n_runs)
-    offset = np.where(n_seg_votes >= 2, offset, np.iinfo(np.intp).min)
+    n_segs, lo, hi, left, right = _run_votes(run, rank, seg.astype(np.int64), voted, n_runs)
+    # an offset must be confirmed by the dots of >= 2 different stripes (segments) of the run
+    offset = np.where(n_segs >= 2, offset, np.iinfo(np.intp).min)
     run_label = apply_run_offsets(run, rank, offset, num_slits)
     # interpolate only: a point is labelled only between dot-identified stripes of its run
-    big = np.iinfo(np.intp).max
-    lo = np.full(n_runs, big, np.intp)
-    hi = np.full(n_runs, -1, np.intp)
-    np.minimum.at(lo, run[voted], rank[voted])
-    np.maximum.at(hi, run[voted], rank[voted])
     r = np.maximum(run, 0)
     span_ = (run >= 0) & (rank >= lo[r]) & (rank <= hi[r])
     lab = np.where(span_ & (rank > lo[r]) & (rank < hi[r]), run_label, -1)
-    between = np.where(_between_agreeing(run, rank, vote, voted, lab), lab, -1)
+    # ... where the nearest dot-identified stripes either side agree (:func:`_between_agreeing`)
+    between = np.where(_agreeing(rank, vote, lab, left, right), lab, -1)
     return RowOrder(run, rank, run_label, np.where(span_, run_label, -1), between)
 
 
@@ -339,27 +518,22 @@ def fill_by_order(
     dots = dots or {}
     out: dict[int, tuple[int, float]] = {}
     ok = seg >= 0
-    free = np.unique(seg[ok & (slit < 0) & usable])
+    span = int(seg.max()) + 2
+    free = np.flatnonzero(np.bincount(seg[ok & (slit < 0) & usable], minlength=span))
     if free.size == 0:
         return out
-    span = int(seg.max()) + 2
     n_pts = np.bincount(seg[ok], minlength=span)
 
     def majority(lab: NDArray[np.intp]) -> tuple[NDArray[np.int64], F64, F64]:
         """Per segment: most frequent label (the smallest of equally frequent ones), its count,
         and the number of labelled points."""
         lm = ok & (lab >= 0)
-        L = num_slits + 1
-        keys, cnt = np.unique(seg[lm].astype(np.int64) * L + lab[lm], return_counts=True)
-        ks, kl = keys // L, keys % L
-        n_lab = np.bincount(ks, weights=cnt, minlength=span)
-        o = np.lexsort((kl, -cnt, ks))
-        first = o[np.r_[True, ks[o][1:] != ks[o][:-1]]] if len(o) else o
-        best = np.full(span, -1, np.int64)
-        best_cnt = np.zeros(span)
-        best[ks[first]] = kl[first]
-        best_cnt[ks[first]] = cnt[first]
-        return best, best_cnt, n_lab
+        L = max(num_slits, int(lab.max()) + 1)
+        cnt = np.bincount(seg[lm] * L + lab[lm], minlength=span * L).reshape(span, L)
+        best = np.argmax(cnt, axis=1)
+        best_cnt = cnt[np.arange(span), best].astype(np.float64)
+        best = np.where(best_cnt > 0, best, -1)
+        return best, best_cnt, cnt.sum(axis=1).astype(np.float64)
 
     b_lab, b_cnt, b_n = majority(order.between)
     r_lab, r_cnt, r_n = majority(order.extended)
@@ -410,10 +584,14 @@ def confirm_by_neighbours(
     dict segment -> slit, for the segments confirmed
     """
     lab = np.where(slit >= 0, slit, np.where(seg >= 0, weak[np.maximum(seg, 0)], -1))
-    o = np.lexsort((order.rank, order.run))
-    o = o[order.run[o] >= 0]
-    nxt = (order.run[o][1:] == order.run[o][:-1]) & (order.rank[o][1:] == order.rank[o][:-1] + 1)
-    a, b = o[:-1][nxt], o[1:][nxt]
+    # the pairs of consecutive stripes a, b in a run (b's rank is a's + 1)
+    run, rank = order.run, order.rank
+    n_runs = int(run.max()) + 1 if len(run) else 0
+    _, _, _, prev, _ = _run_votes(run, rank, np.zeros(len(run), np.int64), run >= 0, n_runs)
+    b = np.flatnonzero(prev >= 0)
+    a = prev[b]
+    nxt = rank[b] == rank[a] + 1
+    a, b = a[nxt], b[nxt]
     pair = (lab[a] >= 0) & (lab[b] == lab[a] + 1) & (seg[a] != seg[b])
     support = np.zeros(len(seg), bool)
     support[a[pair]] = True

@@ -180,6 +180,70 @@ def _patch_columns_kernel(image_t, x0, y0, fx, fy, out, s1, s2):
         s2[m] = acc[1]
 
 
+@njit(cache=True, fastmath={"contract"})
+def _lerp(a, b, t):
+    """a + t (b - a), float32, a fused multiply-add (as ``cv2.remap`` blends)."""
+    return a + t * (b - a)
+
+
+@njit(cache=True)
+def _remap_kernel(image, centres, row_shift, row_rise, col_scale, half_w, half_h, out):
+    """The patches of :func:`_remap_patches` into ``out`` (M, ph, pw) float32.
+
+    Column i, row j of patch m samples x = float32(u_m) + float32(col_scale_m (i - half_w)) +
+    float32(row_shift[m, j]), y = float32(v_m) + (j - half_h) + float32(row_rise[m, j]) (float32
+    sums in that order), bilinearly as ``cv2.remap`` (``INTER_LINEAR``, ``BORDER_CONSTANT`` 0)
+    does: along x, then y, each blend a fused multiply-add; 0 at non-finite positions.
+    """
+    h, w = image.shape
+    ph, pw = out.shape[1], out.shape[2]
+    zero = np.float32(0.0)
+    xs = np.empty(pw, np.float32)
+    for m in range(centres.shape[0]):
+        u = np.float32(centres[m, 0])
+        v = np.float32(centres[m, 1])
+        for i in range(pw):
+            xs[i] = u + np.float32(col_scale[m] * np.float32(i - half_w))
+        for j in range(ph):
+            sx = np.float32(row_shift[m, j])
+            y = (v + np.float32(j - half_h)) + np.float32(row_rise[m, j])
+            o = out[m, j]
+            x_lo = xs[0] + sx
+            x_hi = xs[pw - 1] + sx
+            if not np.isfinite(y):
+                o[:] = zero
+                continue
+            yf = np.floor(y)
+            ay = y - yf
+            y0 = int(yf)
+            if 0 <= y0 < h - 1 and min(x_lo, x_hi) >= 0 and max(x_lo, x_hi) < w - 1:
+                r0 = image[y0]
+                r1 = image[y0 + 1]
+                for i in range(pw):
+                    x = xs[i] + sx
+                    xf = np.floor(x)
+                    ax = x - xf
+                    x0 = int(xf)
+                    t = _lerp(r0[x0], r0[x0 + 1], ax)
+                    o[i] = _lerp(t, _lerp(r1[x0], r1[x0 + 1], ax), ay)
+                continue
+            for i in range(pw):  # at the image's edge: 0 outside
+                x = xs[i] + sx
+                if not np.isfinite(x):
+                    o[i] = zero
+                    continue
+                xf = np.floor(x)
+                ax = x - xf
+                x0 = int(xf)
+                c0, c1 = 0 <= x0 < w, 0 <= x0 + 1 < w
+                q0, q1 = 0 <= y0 < h, 0 <= y0 + 1 < h
+                p00 = image[y0, x0] if q0 and c0 else zero
+                p01 = image[y0, x0 + 1] if q0 and c1 else zero
+                p10 = image[y0 + 1, x0] if q1 and c0 else zero
+                p11 = image[y0 + 1, x0 + 1] if q1 and c1 else zero
+                o[i] = _lerp(_lerp(p00, p01, ax), _lerp(p10, p11, ax), ay)
+
+
 def _remap_patches(
     image: F32,
     centres: F64,
@@ -189,37 +253,25 @@ def _remap_patches(
     row_rise: F64 | None = None,
     col_scale: F64 | None = None,
 ) -> F32:
-    """:func:`sample_patches` by ``cv2.remap`` (zero outside the image); ``row_shift`` and
-    ``row_rise`` (M, ph) move each patch row sideways and down, ``col_scale`` (M,) spaces its
-    columns (see :func:`sample_sheared_patches`)."""
+    """:func:`sample_patches` as ``cv2.remap`` samples them (the same float32 operations;
+    zero outside the image); ``row_shift`` and ``row_rise`` (M, ph) move each patch row
+    sideways and down, ``col_scale`` (M,) spaces its columns (see
+    :func:`sample_sheared_patches`)."""
     m = len(centres)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
-    du = np.arange(-half_w, half_w + 1, dtype=np.float32)
-    dv = np.arange(-half_h, half_h + 1, dtype=np.float32)
-    if col_scale is None:
-        cols = du[None, None, :]
-    else:
-        cols = (col_scale[:, None, None] * du[None, None, :]).astype(np.float32)
-    mx = (centres[:, 0, None, None].astype(np.float32) + cols).repeat(ph, axis=1)
-    if row_shift is not None:
-        mx += row_shift.astype(np.float32)[:, :, None]
-    my = (centres[:, 1, None, None].astype(np.float32) + dv[None, :, None]).repeat(pw, axis=2)
-    if row_rise is not None:
-        my += row_rise.astype(np.float32)[:, :, None]
-    mx = mx.reshape(m * ph, pw)
-    my = my.reshape(m * ph, pw)
-    out = np.empty((m * ph, pw), np.float32)
-    step = 30000 // ph * ph  # cv2.remap maps must have < 32767 rows
-    for r0 in range(0, m * ph, step):
-        out[r0 : r0 + step] = cv2.remap(
-            image,
-            mx[r0 : r0 + step],
-            my[r0 : r0 + step],
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
-        )
-    return out.reshape(m, ph, pw)
+    zeros = np.broadcast_to(np.zeros(1), (m, ph))
+    out = np.empty((m, ph, pw), np.float32)
+    _remap_kernel(
+        np.ascontiguousarray(image, np.float32),
+        np.asarray(centres, np.float64),
+        zeros if row_shift is None else np.asarray(row_shift, np.float64),
+        zeros if row_rise is None else np.asarray(row_rise, np.float64),
+        np.ones(m) if col_scale is None else np.asarray(col_scale, np.float64),
+        half_w,
+        half_h,
+        out,
+    )
+    return out
 
 
 def sample_sheared_patches(
@@ -342,6 +394,40 @@ def _cell(x: F64, n: int) -> NDArray[np.intp]:
     return np.minimum(np.floor(x), n - 2).astype(np.intp)
 
 
+@njit(cache=True, inline="always")
+def _cell_moments(q00, q10, q01, q11, fx, fy):
+    """Sum and sum of squares of the bilinear patch at fractions (``fx``, ``fy``) of its pixel
+    cell, from the :func:`window_sums` (length-6 rows) of the integer windows at the cell's
+    corners (x, y offsets 00, 10, 01, 11)."""
+    w00 = (1.0 - fx) * (1.0 - fy)
+    w10 = fx * (1.0 - fy)
+    w01 = (1.0 - fx) * fy
+    w11 = fx * fy
+    s1 = w00 * q00[0] + w10 * q10[0] + w01 * q01[0] + w11 * q11[0]
+    s2 = (
+        w00 * w00 * q00[1] + w10 * w10 * q10[1] + w01 * w01 * q01[1] + w11 * w11 * q11[1]
+    ) + 2.0 * (
+        w00 * (w10 * q00[2] + w01 * q00[3])
+        + w11 * (w01 * q01[2] + w10 * q10[3])
+        + w00 * w11 * q00[4]
+        + w10 * w01 * q00[5]
+    )
+    return s1, s2
+
+
+@njit(cache=True)
+def _moments_kernel(sums, image, x0, y0, fx, fy, x_major, s1, s2):
+    """:func:`_cell_moments` of each patch (flat arrays) from ``sums`` (R, n_slow, n_fast, 6)."""
+    for k in range(x0.size):
+        g = sums[image[k]]
+        a, b = (x0[k], y0[k]) if x_major else (y0[k], x0[k])
+        if x_major:
+            q00, q10, q01, q11 = g[a, b], g[a + 1, b], g[a, b + 1], g[a + 1, b + 1]
+        else:
+            q00, q10, q01, q11 = g[a, b], g[a, b + 1], g[a + 1, b], g[a + 1, b + 1]
+        s1[k], s2[k] = _cell_moments(q00, q10, q01, q11, fx[k], fy[k])
+
+
 def bilinear_patch_moments(
     sums: F32, x: F64, y: F64, image: NDArray[np.intp] | None = None, x_major: bool = False
 ) -> tuple[F64, F64]:
@@ -360,35 +446,257 @@ def bilinear_patch_moments(
 
     Returns
     -------
-    s1, s2 : (...) float64, sum of the patch's values and of their squares (computed in float32:
-        relative error ~1e-6)
+    s1, s2 : (...) float64, sum of the patch's values and of their squares (blended in float64
+        from the float32 sums: relative error ~1e-6)
     """
-    n_slow, n_fast = sums.shape[-3], sums.shape[-2]
+    stack = sums if sums.ndim == 4 else sums[None]
+    n_slow, n_fast = stack.shape[1:3]
     hs, ws = (n_fast, n_slow) if x_major else (n_slow, n_fast)
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    shape = np.broadcast_shapes(x.shape, y.shape, () if image is None else np.shape(image))
+    x, y = np.broadcast_to(x, shape).ravel(), np.broadcast_to(y, shape).ravel()
     x0, y0 = _cell(x, ws), _cell(y, hs)
-    fx = (x - x0).astype(np.float32)
-    fy = (y - y0).astype(np.float32)
-    slow, fast = (x0, y0) if x_major else (y0, x0)
-    i00 = (slow if image is None else image * n_slow + slow) * n_fast + fast
-    # the cell's four corners (00, 10, 01, 11 as x, y offsets) and their weights
-    dx, dy = (n_fast, 1) if x_major else (1, n_fast)
-    q = sums.reshape(-1, sums.shape[-1])[i00[..., None] + np.array([0, dx, dy, dx + dy])]
-    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
-    s1 = np.einsum("...c,...c->...", w, q[..., 0])
-    s2 = np.einsum("...c,...c->...", w * w, q[..., 1]) + 2 * (
-        w[..., 0] * (w[..., 1] * q[..., 0, 2] + w[..., 2] * q[..., 0, 3])
-        + w[..., 3] * (w[..., 2] * q[..., 2, 2] + w[..., 1] * q[..., 1, 3])
-        + w[..., 0] * w[..., 3] * q[..., 0, 4]
-        + w[..., 1] * w[..., 2] * q[..., 0, 5]
-    )
-    return s1.astype(np.float64), s2.astype(np.float64)
+    img = np.zeros(x.size, np.intp) if image is None else np.broadcast_to(image, shape).ravel()
+    s1, s2 = np.empty(x.size), np.empty(x.size)
+    _moments_kernel(stack, img.astype(np.intp), x0, y0, x - x0, y - y0, bool(x_major), s1, s2)
+    return s1.reshape(shape), s2.reshape(shape)
+
+
+#: Samples whose templates the NCC kernel keeps at hand at once: it takes their candidates
+#: slit by slit, so that the windows of neighbouring samples (neighbouring rows of a stripe)
+#: are read from cache.
+_NCC_BLOCK = 16
+#: Bytes of tall templates transposed at once for the NCC kernel.
+_TRANSPOSE_BYTES = 1 << 20
+#: Single-precision lanes of a vector register: the kernel's template rows are padded to this.
+_LANES = 8
+#: A patch whose values' variance times its size is at most this share of its sum of squares
+#: is flat (NCC 0); a template whose values' norm about their mean is at most ``_FLAT_NORM``
+#: is flat (as in :func:`normalise_patches`).
+_FLAT_SHARE = 1e-6
+_FLAT_NORM = 1e-6
+
+
+@njit(cache=True)
+def _load_template(patch, tq, tsh):
+    """Template of ``patch`` (n0, n1) float32 for :func:`_ncc_kernel`: ``patch`` less its mean,
+    over its norm about it, into ``tq`` (2G, n1q) and shifted one column right into ``tsh``
+    (their other cells stay 0; all 0 for a flat patch)."""
+    n0, n1 = patch.shape
+    s1 = 0.0
+    for i in range(n0):
+        for j in range(n1):
+            s1 += patch[i, j]
+    mean = s1 / (n0 * n1)
+    ss = 0.0
+    for i in range(n0):
+        for j in range(n1):
+            d = patch[i, j] - mean
+            ss += d * d
+    norm = np.sqrt(ss)
+    scale = 1.0 / norm if norm > _FLAT_NORM else 0.0
+    for i in range(n0):
+        for j in range(n1):
+            v = np.float32((patch[i, j] - mean) * scale)
+            tq[i, j] = v
+            tsh[i, j + 1] = v
+
+
+@njit(cache=True, fastmath={"reassoc", "nsz", "contract"})
+def _ncc_kernel(src, patches, which, a0, b0, fa, fb, sums, tall, out):
+    """NCC of templates with bilinear patches of ``src`` (see :func:`bilinear_ncc`).
+
+    ``src`` (R, A, B) float32 holds the images with the patch's rows along A (the images
+    themselves, or transposed for tall patches: ``tall``), ``patches`` (m, n0, n1) the samples'
+    patches in that orientation (the templates); patch (s, c) lies in image ``which[s, c]`` with its cell's
+    corner at (``a0``, ``b0``) and fractions (``fa``, ``fb``). A template row meets the blend
+    of two image rows (fraction ``fa``), at two offsets along the row (0 and 1 px, blended by
+    ``fb``): the template, and the template shifted by a pixel. The template is the sample's
+    patch normalised (:func:`_load_template`). Two candidates of a sample are scored together
+    (they share the template's loads). The moments come from the x-major ``sums``.
+    """
+    m, C = which.shape
+    n0, n1 = patches.shape[1], patches.shape[2]
+    K = n0 * n1
+    G = (n0 + 1) // 2  # row pairs
+    n1q = (n1 + _LANES) // _LANES * _LANES  # > n1: room for the shifted template
+    last = src.shape[1] - 1
+    L = src.shape[2]
+    tq = np.zeros((_NCC_BLOCK, 2 * G, n1q), np.float32)
+    tsh = np.zeros((_NCC_BLOCK, 2 * G, n1q), np.float32)
+    for s0 in range(0, m, _NCC_BLOCK):
+        nb = min(_NCC_BLOCK, m - s0)
+        for q in range(nb):
+            _load_template(patches[s0 + q], tq[q], tsh[q])
+        for c0 in range(0, C, 2):
+            c1 = min(c0 + 1, C - 1)
+            for q in range(nb):
+                s = s0 + q
+                t = tq[q]
+                u = tsh[q]
+                ia = src[which[s, c0]]
+                ib = src[which[s, c1]]
+                a, b, f = a0[s, c0], b0[s, c0], np.float32(fa[s, c0])
+                a_, b_, f_ = a0[s, c1], b0[s, c1], np.float32(fa[s, c1])
+                # whole padded rows, except a patch at the end of the rows
+                nj = n1q if max(b, b_) + n1q <= L else n1 + 1
+                dla = 0.0
+                dra = 0.0
+                dlb = 0.0
+                drb = 0.0
+                for g in range(G):
+                    i, i_ = a + 2 * g, a_ + 2 * g
+                    x0 = ia[i, b : b + nj]
+                    x1 = ia[i + 1, b : b + nj]
+                    x2 = ia[min(i + 2, last), b : b + nj]
+                    y0 = ib[i_, b_ : b_ + nj]
+                    y1 = ib[i_ + 1, b_ : b_ + nj]
+                    y2 = ib[min(i_ + 2, last), b_ : b_ + nj]
+                    t0, t1, u0, u1 = t[2 * g], t[2 * g + 1], u[2 * g], u[2 * g + 1]
+                    la = np.float32(0.0)
+                    ra = np.float32(0.0)
+                    lb = np.float32(0.0)
+                    rb = np.float32(0.0)
+                    for j in range(nj):
+                        p0, p1, p2 = x0[j], x1[j], x2[j]
+                        v0 = p0 + f * (p1 - p0)
+                        v1 = p1 + f * (p2 - p1)
+                        p0, p1, p2 = y0[j], y1[j], y2[j]
+                        w0 = p0 + f_ * (p1 - p0)
+                        w1 = p1 + f_ * (p2 - p1)
+                        T0, T1, U0, U1 = t0[j], t1[j], u0[j], u1[j]
+                        la += T0 * v0 + T1 * v1
+                        ra += U0 * v0 + U1 * v1
+                        lb += T0 * w0 + T1 * w1
+                        rb += U0 * w0 + U1 * w1
+                    dla += la
+                    dra += ra
+                    dlb += lb
+                    drb += rb
+                for c, dl, dr in ((c0, dla, dra), (c1, dlb, drb)):
+                    g_ = sums[which[s, c]]
+                    a, b = a0[s, c], b0[s, c]
+                    x, y = (a, b) if tall else (b, a)
+                    fx, fy = (fa[s, c], fb[s, c]) if tall else (fb[s, c], fa[s, c])
+                    s1, s2 = _cell_moments(
+                        g_[x, y], g_[x + 1, y], g_[x, y + 1], g_[x + 1, y + 1], fx, fy
+                    )
+                    var = s2 - s1 * s1 / K
+                    if var <= _FLAT_SHARE * max(s2, 1e-12):
+                        out[s, c] = 0.0
+                    else:
+                        w = fb[s, c]
+                        out[s, c] = ((1.0 - w) * dl + w * dr) / np.sqrt(var)
+
+
+def bilinear_ncc(
+    images: F32,
+    patches: F32,
+    which: NDArray[np.intp],
+    x: F64,
+    y: F64,
+    sums: F32,
+    half_w: int,
+    half_h: int,
+    *,
+    images_t: F32 | None = None,
+) -> F64:
+    """Normalised cross-correlation of the samples' patches with bilinear patches of a stack of
+    images.
+
+    Equal (to float32 rounding) to ``normalise_patches(sample_patches(images[which], centres,
+    half_w, half_h))`` dotted with ``normalise_patches(patches)``, without sampling the image
+    patches: one compiled pass blends the image rows under each template row and takes the
+    template's dot products with them at the cell's two offsets along the row; the image
+    patch's mean and norm come from the window sums (:func:`bilinear_patch_moments`).
+
+    Parameters
+    ----------
+    images : (R, H, W') float32, C-contiguous, the images, W' >= W: each row may be followed
+        by padding (finite values; reading whole vector lanes is then faster, and rows a page
+        long are best avoided: :meth:`~multislit.identify.reference.ReferenceSet.padded_dots`)
+    patches : (m, 2*half_h+1, 2*half_w+1) float32, the samples' patches (the templates before
+        :func:`normalise_patches`, which is done here in float64)
+    which : (m, C) intp, the image of each of a sample's C patches
+    x, y : (m, C) float64, px, each patch's top-left sample position (centre - half size),
+        with the patch inside the image: 0 <= x <= W - 1 - 2*half_w, 0 <= y <= H - 1 - 2*half_h
+    sums : (R, W - 2*half_w, H - 2*half_h, 6) float32, :func:`window_sums` of each image,
+        x-major (:meth:`~multislit.identify.reference.ReferenceSet.window_sums`)
+    half_w, half_h : patch half sizes, px
+    images_t : (R, W, H') float32 C-contiguous, the images transposed (rows padded likewise),
+        optional: a tall patch (more rows than columns) is read from it along its columns
+        (made here if not given)
+
+    Returns
+    -------
+    ncc : (m, C) float64, 0 for a flat (all equal) image patch or sample patch
+    """
+    m, C = np.shape(which)
+    ph, pw = 2 * half_h + 1, 2 * half_w + 1
+    out = np.zeros((m, C))
+    if m == 0 or C == 0:
+        return out
+    ws, hs = sums.shape[1:3]
+    x0, y0 = _cell(x, ws), _cell(y, hs)
+    fx, fy = x - x0, y - y0
+    p3 = np.asarray(patches, np.float32).reshape(m, ph, pw)
+    which = np.asarray(which, np.intp)
+    tall = ph > pw
+    if not tall:
+        src = np.ascontiguousarray(images, np.float32)
+        _ncc_kernel(src, np.ascontiguousarray(p3), which, y0, x0, fy, fx, sums, tall, out)
+        return out
+    src = images.transpose(0, 2, 1) if images_t is None else images_t
+    src = np.ascontiguousarray(src, np.float32)
+    step = max(1, _TRANSPOSE_BYTES // (4 * ph * pw))  # samples whose patches are transposed at once
+    for a in range(0, m, step):
+        sl = slice(a, a + step)
+        pt = np.ascontiguousarray(p3[sl].transpose(0, 2, 1))
+        _ncc_kernel(src, pt, which[sl], x0[sl], y0[sl], fx[sl], fy[sl], sums, tall, out[sl])
+    return out
 
 
 def compile_kernels() -> None:
-    """Compile the patch sampler's Numba kernel (:func:`sample_patch_columns`) now.
+    """Compile the identification's Numba kernels now: the patch samplers
+    (:func:`sample_patch_columns`, :func:`sample_sheared_patches`), :func:`bilinear_ncc` for
+    tall and wide patches, :func:`bilinear_patch_moments`, the epipolar intersections
+    (:func:`~multislit.identify.reference.intersect_line_curves`) and the candidates' checks
+    of :func:`~multislit.identify.matching.score_candidates`.
 
-    Numba compiles it on first use (a few seconds) and caches the machine code on disk beside
+    Numba compiles them on first use (a few seconds) and caches the machine code on disk beside
     the package, so only the first reference preparation after an install pays it.
     """
+    from multislit.identify import matching, reference  # (both import this module)
+
     img = np.zeros((16, 16), np.float32)
-    sample_patch_columns(img, np.array([[8.0, 8.0]]), 2, 3)
+    one = np.array([[8.0, 8.0]])
+    sample_patch_columns(img, one, 2, 3)
+    sample_patches(img, np.array([[0.5, 0.5]]), 2, 3)  # at the edge: by cv2.remap
+    sample_sheared_patches(
+        img, one, 2, 3, np.zeros((1, 7)), row_rise=np.zeros((1, 7)), col_scale=np.ones(1)
+    )
+    stack = np.zeros((1, 16, 16), np.float32)
+    for hw, hh in ((2, 3), (3, 2)):
+        sums = window_sums(stack[0], hw, hh).transpose(1, 0, 2)[None].copy()
+        t = np.zeros((1, (2 * hw + 1) * (2 * hh + 1)), np.float32)
+        bilinear_ncc(
+            stack, t, np.zeros((1, 1), np.intp), np.ones((1, 1)), np.ones((1, 1)), sums, hw, hh
+        )
+        bilinear_patch_moments(sums, np.ones(1), np.ones(1), np.zeros(1, np.intp), x_major=True)
+    lines = np.array([[[1.0, 0.0, -5.0]]])
+    curves = np.array([[[0.0, 0.0, 0.0, 5.0]]])
+    vv = reference.intersect_line_curves(
+        lines[:, :, None], curves[:, None], np.zeros((1, 1, 1)), block=1
+    )
+    uu = np.empty_like(vv)
+    matching._mask_candidates(curves, np.array([[[0.0, 9.0]]]), 1, 1, 16, 16, vv, uu)
+    r, cu, cv, ok = (
+        np.empty((1, 1), np.intp),
+        np.empty((1, 1)),
+        np.empty((1, 1)),
+        np.empty((1, 1), bool),
+    )
+    matching._nearest_candidates(uu, vv, one, r, cu, cv, ok)
+    keys = np.arange(3.0)
+    matching._sorted_positions(keys, keys[None], np.empty((1, 3), np.intp))

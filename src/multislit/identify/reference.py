@@ -20,6 +20,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from multislit.errors import ReferenceImageError
@@ -42,6 +43,9 @@ CURVE_DEGREE = 3
 _EPIPOLE_DOTS = 12.0
 #: Templates scored per matrix product in the epipole's dot search.
 _SCORE_BLOCK = 8
+#: Zeros after each row of :meth:`ReferenceSet.padded_dots` (px): more than a vector's lanes,
+#: and rows not a multiple of the page size long.
+_ROW_PAD = 32
 #: A candidate patch whose values' norm about their mean is at most this is flat (score 0), as
 #: in :func:`normalise_patches`.
 _FLAT = 1e-6
@@ -145,24 +149,112 @@ def curve_du(coeffs: F64, v: F64) -> F64:
     return out
 
 
+@njit(cache=True)
+def _newton_kernel(lines, coeffs_t, v, iterations, tol, block):
+    """Newton steps of :func:`intersect_line_curves` on a grid: line ``lines[p, q]`` (P, Q, 3)
+    with curve ``coeffs_t[p, :, s]`` (P, D+1, S), from and into ``v`` (P, Q, S).
+
+    The same float64 operations in the same order as :func:`curve_u` and :func:`curve_du` (no
+    fused multiply-adds), so the same numbers; the loops along S vectorise. Blocks of
+    ``block`` lines along Q each stop on their own.
+    """
+    P, Q, S = v.shape
+    d = coeffs_t.shape[1] - 1
+    u = np.empty(S)
+    du = np.empty(S)
+    for q0 in range(0, Q, block):
+        _newton_block(lines, coeffs_t, v, iterations, tol, q0, min(q0 + block, Q), d, u, du)
+
+
+@njit(cache=True)
+def _newton_block(lines, coeffs_t, v, iterations, tol, q0, q1, d, u, du):
+    """:func:`_newton_kernel` on the lines ``q0:q1``."""
+    P, S = v.shape[0], v.shape[2]
+    for _ in range(iterations):
+        moved = False
+        for p in range(P):
+            cf = coeffs_t[p]
+            for q in range(q0, q1):
+                x = v[p, q]
+                u[:] = 0.0
+                du[:] = 0.0
+                for e in range(d + 1):
+                    for s in range(S):
+                        u[s] = u[s] * x[s] + cf[e, s]
+                for e in range(d):
+                    for s in range(S):
+                        du[s] = du[s] * x[s] + cf[e, s] * (d - e)
+                a, b, c = lines[p, q, 0], lines[p, q, 1], lines[p, q, 2]
+                for s in range(S):
+                    f = a * u[s] + b * x[s] + c
+                    df = a * du[s] + b
+                    dv = f / df if abs(df) > 1e-12 else np.nan
+                    x[s] = x[s] - dv
+                    moved |= abs(dv) > tol  # (NaN compares False: no intersection)
+        if not moved:
+            break
+
+
 def intersect_line_curves(
-    lines: F64, coeffs: F64, v0: F64, iterations: int = 6, tol: float = 1e-6
+    lines: F64,
+    coeffs: F64,
+    v0: F64,
+    iterations: int = 6,
+    tol: float = 1e-6,
+    *,
+    block: int | None = None,
 ) -> F64:
     """Rows v where lines a u + b v + c = 0 meet curves u = p(v) (Newton from v0), broadcast.
 
-    At most ``iterations`` Newton steps; stops early once no step exceeds ``tol`` px.
+    At most ``iterations`` Newton steps, all points together; stops early once no step
+    exceeds ``tol`` px. Compiled; fastest when the lines vary along other axes than the curves
+    do (every line with every curve, as :func:`~multislit.identify.matching.score_candidates`
+    asks: lines (1, M, 1, 3) with curves (R, 1, N, D+1)).
+
+    Parameters
+    ----------
+    lines : (..., 3) float64, (a, b, c) per line
+    coeffs : (..., D+1) float64, u = p(v), highest power first (:func:`curve_u`)
+    v0 : (...) float64, px, the start rows
+    iterations : most Newton steps
+    tol : px, the step size below which a point has converged
+    block : the points are taken in blocks of this many lines (of the axes where only the
+        lines vary), each stopping on its own (same numbers as one call per block); default
+        all at once
+
+    Returns
+    -------
+    v : float64, px, broadcast shape of the three; NaN where there is no intersection
     """
-    v = np.array(v0, dtype=float, copy=True)
-    a, b, c = lines[..., 0], lines[..., 1], lines[..., 2]
-    for _ in range(iterations):
-        f = a * curve_u(coeffs, v) + b * v + c
-        df = a * curve_du(coeffs, v) + b
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dv = f / np.where(np.abs(df) > 1e-12, df, np.nan)
-            v = v - dv
-            if not np.any(np.abs(dv) > tol):  # (NaN compares False: no intersection)
-                break
-    return v
+    lines = np.asarray(lines, dtype=np.float64)
+    coeffs = np.asarray(coeffs, dtype=np.float64)
+    shape = np.broadcast_shapes(lines.shape[:-1], coeffs.shape[:-1], np.shape(v0))
+    v = np.array(np.broadcast_to(v0, shape), dtype=np.float64)  # a copy, updated in place
+    if v.size == 0:
+        return v
+    # the grid (P, Q, S): the axes where only the curves vary (S) go last, where only the
+    # lines vary (Q) next, the rest (P) first; lines and curves are made (P, Q) and (P, S)
+    nd = len(shape)
+    ls = (1,) * (nd - lines.ndim + 1) + lines.shape[:-1]
+    cs = (1,) * (nd - coeffs.ndim + 1) + coeffs.shape[:-1]
+    only_c = [i for i in range(nd) if ls[i] == 1 and shape[i] > 1]
+    only_l = [i for i in range(nd) if cs[i] == 1 and shape[i] > 1 and i not in only_c]
+    rest = [i for i in range(nd) if i not in only_c and i not in only_l]
+    order = rest + only_l + only_c
+    P = int(np.prod([shape[i] for i in rest]))
+    Q = int(np.prod([shape[i] for i in only_l]))
+    S = int(np.prod([shape[i] for i in only_c]))
+    lb = np.broadcast_to(lines.reshape(ls + (3,)), shape + (3,)).transpose(order + [nd])
+    cb = np.broadcast_to(coeffs.reshape(cs + coeffs.shape[-1:]), shape + coeffs.shape[-1:])
+    cb = cb.transpose(order + [nd])
+    ln = np.ascontiguousarray(lb[(Ellipsis,) + (0,) * len(only_c) + (slice(None),)]).reshape(
+        P, Q, 3
+    )
+    idx = tuple([slice(None)] * len(rest) + [0] * len(only_l))
+    ct = np.ascontiguousarray(np.moveaxis(cb[idx].reshape(P, S, -1), 2, 1))
+    vg = np.ascontiguousarray(v.transpose(order)).reshape(P, Q, S)
+    _newton_kernel(ln, ct, vg, int(iterations), float(tol), max(1, int(block or Q)))
+    return np.ascontiguousarray(vg.reshape([shape[i] for i in order]).transpose(np.argsort(order)))
 
 
 # --------------------------------------------------------------------------- reference set
@@ -219,14 +311,22 @@ class ReferenceSet:
             ),
         )
 
-    def dots_transposed(self) -> F32:
-        """The dot images transposed, (R, W, H) float32 C-contiguous (read-only, kept).
+    def padded_dots(self, transposed: bool = False) -> F32:
+        """The dot images with ``_ROW_PAD`` zeros after each row, (R, H, W + pad) float32
+        C-contiguous, or transposed (R, W, H + pad) (read-only, kept).
 
-        Gathering a tall narrow patch copies fewer, longer rows from this layout.
+        :func:`~multislit.identify.patches.bilinear_ncc` reads patches row by row from it: rows
+        a page long (a 1024 px high image transposed) would all fall in the same cache sets,
+        and a patch may read whole vector lanes past the end of its row.
         """
-        return self._cached(
-            ("dots_transposed",), lambda: np.ascontiguousarray(self.dots.transpose(0, 2, 1))
-        )
+
+        def make() -> F32:
+            d = self.dots.transpose(0, 2, 1) if transposed else self.dots
+            out = np.zeros(d.shape[:2] + (d.shape[2] + _ROW_PAD,), np.float32)
+            out[:, :, : d.shape[2]] = d
+            return out
+
+        return self._cached(("padded_dots", bool(transposed)), make)
 
     def _cached(self, key: tuple, make: Callable[[], NDArray]) -> NDArray:
         """``make()``, computed once per key and kept read-only with the set."""

@@ -10,17 +10,70 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
+#: Keys up to this many times the number of items (plus a constant) are grouped by counting;
+#: sparser keys by a comparison sort.
+_DENSE_KEYS = 4
+
+
+@njit(cache=True)
+def _counting_order(key, pre, n_keys):
+    """The items ``pre`` with ``key >= 0``, stably ordered by ``key`` (0 .. ``n_keys`` - 1)."""
+    count = np.zeros(n_keys + 1, np.int64)
+    for i in pre:
+        if key[i] >= 0:
+            count[key[i] + 1] += 1
+    for k in range(n_keys):
+        count[k + 1] += count[k]
+    out = np.empty(count[n_keys], np.intp)
+    for i in pre:
+        k = key[i]
+        if k >= 0:
+            out[count[k]] = i
+            count[k] += 1
+    return out
+
+
+def group_order(key: NDArray[np.integer], pre: NDArray[np.intp] | None = None) -> NDArray[np.intp]:
+    """The items with ``key >= 0``, stably ordered by their key.
+
+    Parameters
+    ----------
+    key : (K,) int, group id per item (-1 or below: the item is left out)
+    pre : (K,) intp, the items in a prior order (a permutation of 0..K-1) that ties keep;
+        default: 0..K-1
+
+    Returns
+    -------
+    (K',) intp, item indices: ``pre[key[pre] >= 0]`` stably sorted by key (a counting sort)
+    """
+    key = np.asarray(key)
+    if pre is None:
+        pre = np.arange(len(key))
+    if len(key) == 0:
+        return np.zeros(0, np.intp)
+    n_keys = int(key.max()) + 1
+    if n_keys > _DENSE_KEYS * len(key) + 1024:  # sparse ids: a comparison sort
+        sel = pre[key[pre] >= 0]
+        return sel[np.argsort(key[sel], kind="stable")].astype(np.intp)
+    return _counting_order(key.astype(np.int64), pre.astype(np.intp), n_keys)
+
+
+def by_segment(seg: I64, v: F64) -> NDArray[np.intp]:
+    """The linked points (``seg >= 0``) ordered by (segment, v, index): (K',) intp, the same
+    as ``idx[np.lexsort((v[idx], seg[idx]))]`` for ``idx = np.flatnonzero(seg >= 0)``."""
+    return group_order(seg, np.argsort(v, kind="stable"))
+
 
 def segment_runs(seg: I64, v: F64) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
     """The linked points ordered by (segment, v), and for each of them the positions (in that
     order) of its segment's first and last point: ``order, first, last``, each (K',)."""
-    idx = np.flatnonzero(seg >= 0)
-    order = idx[np.lexsort((v[idx], seg[idx]))]
+    order = by_segment(seg, v)
     pos = np.arange(len(order))
     if order.size == 0:
         return order, pos, pos
@@ -33,17 +86,28 @@ def segment_runs(seg: I64, v: F64) -> tuple[NDArray[np.intp], NDArray[np.intp], 
     return order, first, last
 
 
-def _sample_points(seg: I64, v: F64, step_px: float) -> NDArray[np.intp]:
-    """Indices of points spaced about ``step_px`` rows apart along each segment."""
-    order, start_v, _ = segment_runs(seg, v)
+def _sampled_runs(
+    seg: I64, v: F64, step_px: float
+) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
+    """The linked points ordered by (segment, v) (:func:`segment_runs`), and per point in that
+    order whether it is a sample point (the first of its segment's ``step_px``-high bucket,
+    buckets counted from the segment's first row) and whether it is its segment's last point."""
+    order, first, last = segment_runs(seg, v)
+    pos = np.arange(len(order))
     if order.size == 0:
-        return order
+        return order, pos > 0, pos > 0
     s = seg[order]
-    rel = v[order] - v[order][start_v]
+    rel = v[order] - v[order][first]
     bucket = np.floor(rel / step_px + 0.5).astype(np.int64)
     # keep the first point of each (segment, bucket)
     key = s.astype(np.int64) * 1_000_000 + bucket
     keep = np.r_[True, key[1:] != key[:-1]]
+    return order, keep, last == pos
+
+
+def _sample_points(seg: I64, v: F64, step_px: float) -> NDArray[np.intp]:
+    """Indices of points spaced about ``step_px`` rows apart along each segment."""
+    order, keep, _ = _sampled_runs(seg, v, step_px)
     return order[keep]
 
 
@@ -54,19 +118,17 @@ def band_samples(seg: I64, v: F64, step_px: float, lo: float, hi: float) -> NDAr
     empty rows, which say little. Each segment's sampling starts at its first row in the band,
     and a segment that runs on below the band also gets its last row in the band, so the rows
     between the band and the image edge lie within a template's half height of a sample.
+    The samples are ordered by segment, then row.
     """
     inside = (v >= lo) & (v <= hi)
-    seg_in = np.where(inside, seg, -1)
-    si = _sample_points(seg_in, v, step_px)
-    below = np.unique(seg[(seg >= 0) & (v > hi)])
-    if below.size == 0 or si.size == 0:
-        return si
+    order, keep, last = _sampled_runs(np.where(inside, seg, -1), v, step_px)
+    below = (seg >= 0) & (v > hi)
+    if order.size == 0 or not below.any():
+        return order[keep]
     # the last row in the band of each segment that runs on below it
-    m = np.flatnonzero(inside & np.isin(seg, below))
-    o = m[np.lexsort((v[m], seg[m]))]
-    ends = o[np.r_[seg[o][1:] != seg[o][:-1], True]] if o.size else o
-    si = np.unique(np.r_[si, ends])
-    return si[np.lexsort((v[si], seg[si]))]  # by segment, then row, as _sample_points
+    runs_below = np.zeros(int(seg.max()) + 1, bool)
+    runs_below[seg[below]] = True
+    return order[keep | (last & runs_below[seg[order]])]
 
 
 def near_segment_ends(
@@ -108,6 +170,54 @@ def near_segment_ends(
     return out
 
 
+@njit(cache=True)
+def _rolling_median(x, window):
+    """(len(x) - ``window`` + 1,) float64: the median of ``x[i : i + window]`` at i (NaN where
+    one of them is NaN), as ``np.median`` gives it."""
+    n = max(len(x) - window + 1, 0)
+    out = np.empty(n)
+    buf = np.empty(window)
+    h = window // 2
+    for i in range(n):
+        nan = False
+        for j in range(window):
+            a = x[i + j]
+            nan |= np.isnan(a)
+            # insertion into the sorted buf[:j]
+            k = j
+            while k > 0 and buf[k - 1] > a:
+                buf[k] = buf[k - 1]
+                k -= 1
+            buf[k] = a
+        if nan:
+            out[i] = np.nan
+        elif window % 2:
+            out[i] = buf[h]
+        else:
+            out[i] = (buf[h - 1] + buf[h]) / 2.0
+    return out
+
+
+@njit(cache=True)
+def _brightness_steps(logp, s_o, window):
+    """Per point i of the points by (segment, v) (segment ids ``s_o``), the step of the log
+    brightness ``logp`` from the median of points i .. i + w - 1 to that of the next ``w``
+    (``w`` = ``window``): (K - 2w + 1,) float64, 0 where the 2w points leave the segment or
+    the segment has fewer than 2w + 2 points."""
+    med = _rolling_median(logp, window)  # med[i] = points i .. i + w - 1
+    n = max(len(med) - window, 0)
+    out = np.zeros(n)
+    start = end = 0  # the segment of point g: points start .. end - 1
+    for g in range(n):
+        if g >= end:
+            start, end = g, g + 1
+            while end < len(s_o) and s_o[end] == s_o[g]:
+                end += 1
+        if g + 2 * window <= end and end - start >= 2 * window + 2:
+            out[g] = abs(med[g + window] - med[g])
+    return out
+
+
 def split_at_brightness_steps(
     seg: I64, v: F64, peak: F64, ratio: float = 1.6, window: int = 6
 ) -> I64:
@@ -119,40 +229,54 @@ def split_at_brightness_steps(
     is placed where the median brightness of the ``window`` rows before and after differ most,
     if they differ by more than ``ratio``.
     """
-    from numpy.lib.stride_tricks import sliding_window_view
-
     seg = seg.copy()
     next_id = int(seg.max()) + 1 if seg.size else 0
     idx = np.flatnonzero(seg >= 0)
     if idx.size < 2 * window + 2:
         return seg
     # all segments at once: points by (segment, v); rolling medians of log brightness
-    order = idx[np.lexsort((v[idx], seg[idx]))]
+    order = by_segment(seg, v)
     s_o = seg[order]
-    bounds = np.flatnonzero(np.r_[True, s_o[1:] != s_o[:-1], True])
-    start = np.repeat(bounds[:-1], np.diff(bounds))  # first point of each point's segment
-    end = np.repeat(bounds[1:], np.diff(bounds))
-    logp = np.log(np.maximum(peak[order], 1e-3))
-    med = np.median(sliding_window_view(logp, window), axis=1)  # med[i] = points i..i+w-1
-    g = np.arange(len(med) - window)  # before: g..g+w-1, after: g+w..g+2w-1
-    inside = (g + 2 * window <= end[g]) & (end[g] - start[g] >= 2 * window + 2)
-    step_all = np.where(inside, np.abs(med[g + window] - med[g]), 0.0)
-    candidates = np.unique(s_o[g[step_all > np.log(ratio)]])
-    for sid in candidates:
-        a = int(np.searchsorted(s_o, sid, side="left"))
-        b = int(np.searchsorted(s_o, sid, side="right"))
-        pts = order[a:b]
-        step = step_all[a : b - 2 * window + 1].copy()  # same as this segment's own medians
-        cut_at = []
-        while step.size and step.max() > np.log(ratio):
-            j = int(np.argmax(step))
-            cut_at.append(j + window)  # first point of the new piece
-            lo, hi = max(0, j - window), min(len(step), j + window + 1)
-            step[lo:hi] = 0
-        for c in sorted(cut_at):
-            seg[pts[c:]] = np.where(seg[pts[c:]] == seg[pts[c]], next_id, seg[pts[c:]])
-            next_id += 1
+    logp = peak[order].astype(np.float64)
+    np.log(np.maximum(logp, 1e-3, out=logp), out=logp)
+    step_all = _brightness_steps(logp, s_o, window)
+    candidates = np.unique(s_o[: len(step_all)][step_all > np.log(ratio)])
+    a = np.searchsorted(s_o, candidates, side="left")
+    b = np.searchsorted(s_o, candidates, side="right")
+    _cut_at_steps(seg, order, step_all, a, b, window, float(np.log(ratio)), next_id)
     return seg
+
+
+@njit(cache=True)
+def _cut_at_steps(seg, order, step, a, b, window, log_ratio, next_id):
+    """In place on ``seg``: the cuts of :func:`split_at_brightness_steps` in the segments whose
+    points are ``order[a[i] : b[i]]`` (by v), from ``step`` (the brightness step at each
+    point, in the order ``order``): repeatedly at the largest step above ``log_ratio`` (the
+    first of equal ones; none where a step is NaN), clearing ``window`` points either side;
+    each cut gives the rest of its piece the next new id from ``next_id``."""
+    for i in range(len(a)):
+        pts = order[a[i] : b[i]]
+        st = step[a[i] : b[i] - 2 * window + 1].copy()  # this segment's own steps
+        cuts = np.empty(len(st), np.int64)
+        n_cuts = 0
+        while len(st):
+            j = 0
+            nan = False
+            for t in range(len(st)):
+                nan |= np.isnan(st[t])
+                if st[t] > st[j]:
+                    j = t
+            if nan or not st[j] > log_ratio:
+                break
+            cuts[n_cuts] = j + window  # first point of the new piece
+            n_cuts += 1
+            st[max(0, j - window) : min(len(st), j + window + 1)] = 0.0
+        for c in np.sort(cuts[:n_cuts]):
+            old = seg[pts[c]]
+            for t in range(c, len(pts)):
+                if seg[pts[t]] == old:
+                    seg[pts[t]] = next_id
+            next_id += 1
 
 
 #: A sample clearly prefers its best slit when that slit's NCC leads the second best by this.
@@ -173,10 +297,32 @@ def clear_winners(scores: F64, min_score: float) -> tuple[NDArray[np.intp], NDAr
     clear : (M,) bool, the best NCC reaches ``min_score`` and leads the second best by
         :data:`WINNER_LEAD`
     """
-    S = np.where(np.isfinite(scores), scores, -1.0)
-    top2 = np.sort(S, axis=1)[:, -2:] if S.shape[1] > 1 else np.c_[np.full(len(S), -1.0), S]
-    win = np.argmax(S, axis=1)
-    return win, (top2[:, 1] >= min_score) & (top2[:, 1] - top2[:, 0] >= WINNER_LEAD)
+    win, best, second = _top_two(np.ascontiguousarray(scores, dtype=np.float64))
+    return win, (best >= min_score) & (best - second >= WINNER_LEAD)
+
+
+@njit(cache=True)
+def _top_two(scores):
+    """Per row of ``scores`` (M, N), NaN and infinities counting -1: the first column with the
+    largest value, that value and the second largest (the largest again if it occurs twice;
+    -1 for one column)."""
+    m, n = scores.shape
+    win = np.zeros(m, np.intp)
+    best = np.empty(m)
+    second = np.empty(m)
+    for i in range(m):
+        b1 = b2 = -np.inf
+        k = 0
+        for j in range(n):
+            x = scores[i, j]
+            if not np.isfinite(x):
+                x = -1.0
+            if x > b1:
+                b1, b2, k = x, b1, j
+            elif x > b2:
+                b2 = x
+        win[i], best[i], second[i] = k, b1, -1.0 if n == 1 else b2
+    return win, best, second
 
 
 def split_at_winner_changes(
