@@ -441,7 +441,7 @@ def _steger_setup(img, ex):
     """The inputs of ``_steger_kernel`` for an extraction's points, as refine_centres makes
     them."""
     from multislit.stripes.openings import stripe_opening
-    from multislit.stripes.refine import _SLOPE_BLOCK, _highpass_and_tensor, _segment_rows
+    from multislit.stripes.refine import _highpass_and_tensor, _segment_rows
     from multislit.stripes.separation import dot_mask, noise_from_difference
 
     h, w = img.shape
@@ -458,8 +458,7 @@ def _steger_setup(img, ex):
     active = (seg >= 0) & (inner >= 0)
 
     def slope():
-        state = np.zeros((w, -(-h // _SLOPE_BLOCK)), np.uint8)
-        return (put, pvt, g, np.zeros((w, h), np.float32), np.zeros((w, h), np.float32), state)
+        return (put, pvt, g, np.zeros((w, h), np.float32), np.zeros((w, h), np.float32))
 
     return hp, mask, opened, slope, r, active, ss, length
 
@@ -532,7 +531,7 @@ def test_refilled_dots_match_plain_fill_and_cover_the_windows():
         slit = hp.copy()
         slit[dots] = fill_value
         sl = slope()
-        _refill_dots(hp, mask, opened, sl, slit, u, r, active, rad, length)
+        _refill_dots(hp, mask, opened, *sl, slit, u, r, active, rad, length)
         return slit, sl
 
     slit, sl = refilled(np.nan)
@@ -579,7 +578,7 @@ def test_refill_on_dense_dots_matches_plain_fill():
     the windows is refilled, with the plain fill_dots value."""
     import cv2
 
-    from multislit.stripes.refine import _SLOPE_BLOCK, _refill_dots
+    from multislit.stripes.refine import _refill_dots
 
     rng = np.random.default_rng(6)
     h, w, rad, length = 60, 80, 7, 3
@@ -588,12 +587,11 @@ def test_refill_on_dense_dots_matches_plain_fill():
     opened = hp - np.float32(5)
     put, pvt = rng.random((w, h), np.float32), rng.normal(0, 0.3, (w, h)).astype(np.float32)
     g = cv2.getGaussianKernel(9, 2.0, cv2.CV_32F).ravel()
-    state = np.zeros((w, -(-h // _SLOPE_BLOCK)), np.uint8)
-    slope = (put, pvt, g, np.zeros((w, h), np.float32), np.zeros((w, h), np.float32), state)
+    slope = (put, pvt, g, np.zeros((w, h), np.float32), np.zeros((w, h), np.float32))
     r = np.arange(10, 30)
     u = rng.uniform(15, 65, r.size)  # windows far apart: few runs shared
     slit = np.where(mask > 0, np.nan, hp).astype(np.float32)
-    _refill_dots(hp, mask, opened, slope, slit, u, r, np.ones(r.size, bool), rad, length)
+    _refill_dots(hp, mask, opened, *slope, slit, u, r, np.ones(r.size, bool), rad, length)
     hx, hy = _plain_slope_pass(put, pvt, g)
     runs = set()
     for q, c0 in zip(r, np.floor(u).astype(int), strict=True):

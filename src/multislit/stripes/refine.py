@@ -190,15 +190,12 @@ def refine_centres(
     tau = 3.0 * noise_from_difference(img)
     opened = stripe_opening(hp, length, tau)
     mask = dot_mask(hp, opened, tau)
-    # work arrays of the compiled kernel: the slit image, the highpass with the dots refilled
-    # only where the points' windows read them; the slope's Gaussian only where those refills
-    # need it
+    # the slit image: the highpass with the dots refilled only where the points' windows read
+    # them; the slope's Gaussian only where those refills need it
     slit = hp.copy()
-    h_blocks = -(-h // _SLOPE_BLOCK)
-    slope = (put, pvt, g, np.empty((w, h), np.float32), np.empty((w, h), np.float32))
-    slope += (np.zeros((w, h_blocks), np.uint8),)
+    hx, hy = np.empty((w, h), np.float32), np.empty((w, h), np.float32)
     rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
-    _refill_dots(hp, mask, opened, slope, slit, uu, r, active, rad, length)
+    _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, uu, r, active, rad, length)
     m, row_ok = _steger_kernel(slit, uu, r, active, ss, max_shift_px)
     delta, ok, delta2, gain = _fit_kernel(seg, key, order, pos, skey, inner, m, uu, row_ok, R, deg)
     if deg < 0:
@@ -323,10 +320,11 @@ def _check_options(
 # --------------------------------------------------------------------------- compiled kernels
 # The refinement reads the slit image only in the points' Steger windows. The highpass, the
 # structure tensor's products and the dot mask are whole-image passes (OpenCV); the dot
-# refill (a run of dot pixels at a time) and the stripe slope it needs (the tensor's Gaussian:
-# its pass along u column by column, for the blocks of rows around those runs) are made in
-# compiled loops only for the runs the windows can meet, ahead of Steger's derivatives, with
-# the values of :func:`refine_slit_image` there (to float32 rounding).
+# refill (a run of dot pixels at a time, only in the rows the windows read) and the stripe
+# slope it needs (the tensor's Gaussian: its pass along u column by column, for the blocks of
+# rows around those runs; its pass along v at their middles) are made in compiled loops only
+# for the runs the windows can meet, ahead of Steger's derivatives, with the values of
+# :func:`refine_slit_image` there (to float32 rounding).
 
 #: Rows per block of the horizontal pass of the slope's Gaussian (made where needed).
 _SLOPE_BLOCK = 32
@@ -336,17 +334,33 @@ _SLOPE_BLOCK = 32
 def _slope_rows(put, pvt, g, hx, hy, c, q0, q1):
     """The Gaussian ``g``'s pass along u (cv2.BORDER_REFLECT_101) of the structure tensor
     products ``put``, ``pvt`` (W, H) in rows ``q0`` .. ``q1`` - 1 of column ``c``, to ``hx``,
-    ``hy`` (W, H)."""
+    ``hy`` (W, H): each sum float32, in order of the taps."""
     w = put.shape[0]
-    rk = g.size // 2
-    # 1-D views: the inner loops vectorise (the longer the rows, the faster per row)
+    nt = g.size
+    rk = nt // 2
+    # 1-D views: the inner loops vectorise (the longer the rows, the faster per row); four
+    # taps per pass over the sums, added one after the other (the same order as one by one)
     sx = hx[c, q0:q1]
     sy = hy[c, q0:q1]
     sx[:] = 0.0
     sy[:] = 0.0
-    for j in range(-rk, rk + 1):
-        cc = reflect101(c + j, w)
-        gj = g[j + rk]
+    j = 0
+    while j + 4 <= nt:
+        c0 = reflect101(c + j - rk, w)
+        c1 = reflect101(c + j + 1 - rk, w)
+        c2 = reflect101(c + j + 2 - rk, w)
+        c3 = reflect101(c + j + 3 - rk, w)
+        g0, g1, g2, g3 = g[j], g[j + 1], g[j + 2], g[j + 3]
+        p0, p1, p2, p3 = put[c0, q0:q1], put[c1, q0:q1], put[c2, q0:q1], put[c3, q0:q1]
+        for q in range(sx.size):
+            sx[q] = (((sx[q] + g0 * p0[q]) + g1 * p1[q]) + g2 * p2[q]) + g3 * p3[q]
+        p0, p1, p2, p3 = pvt[c0, q0:q1], pvt[c1, q0:q1], pvt[c2, q0:q1], pvt[c3, q0:q1]
+        for q in range(sy.size):
+            sy[q] = (((sy[q] + g0 * p0[q]) + g1 * p1[q]) + g2 * p2[q]) + g3 * p3[q]
+        j += 4
+    for jj in range(j, nt):
+        cc = reflect101(c + jj - rk, w)
+        gj = g[jj]
         px = put[cc, q0:q1]
         py = pvt[cc, q0:q1]
         for q in range(sx.size):
@@ -355,35 +369,79 @@ def _slope_rows(put, pvt, g, hx, hy, c, q0, q1):
 
 
 @njit(cache=True, inline="always")
-def _slope_at(put, pvt, g, hx, hy, state, mid, c):
-    """:func:`~multislit.stripes.slope.stripe_slope` at (``mid``, ``c``): du/dv clipped to +-1, float32, from the
-    Gaussian ``g`` (odd length, cv2.BORDER_REFLECT_101) of the structure tensor products
-    gu^2, gu gv, given transposed (W, H) as ``put``, ``pvt``. The Gaussian's pass along u is
-    read from ``hx``, ``hy`` (W, H), made by :func:`_slope_rows` for the blocks of rows of
-    column ``c`` not yet made (``state`` (W, blocks), 1 where made)."""
-    w, h = put.shape
-    rk = g.size // 2
-    lo = max(mid - rk, 0)
-    hi = min(mid + rk, h - 1)  # reflected rows near the borders fall inside lo .. hi
-    for b in range(lo // _SLOPE_BLOCK, hi // _SLOPE_BLOCK + 1):
-        if not state[c, b]:
-            _slope_rows(put, pvt, g, hx, hy, c, b * _SLOPE_BLOCK, min((b + 1) * _SLOPE_BLOCK, h))
-            state[c, b] = 1
-    juu = np.float32(0.0)
-    juv = np.float32(0.0)
-    if mid - rk >= 0 and mid + rk < h:
-        px = hx[c, mid - rk : mid + rk + 1]
-        py = hy[c, mid - rk : mid + rk + 1]
-        for i in range(g.size):
-            juu += g[i] * px[i]
-            juv += g[i] * py[i]
-    else:
+def _slope_value(juu, juv):
+    """The stripe slope du/dv from the integrated tensor products J_uu, J_uv (float32),
+    clipped to +-1, float32 (as :func:`~multislit.stripes.slope.stripe_slope`)."""
+    s = np.float32(-juv / max(juu, np.float32(1e-6)))
+    return min(max(s, np.float32(-1.0)), np.float32(1.0))
+
+
+@njit(cache=True)
+def _run_slopes(hx, hy, g, cols, mids):
+    """:func:`~multislit.stripes.slope.stripe_slope` at rows ``mids`` of columns ``cols``
+    (n,): the Gaussian ``g``'s pass along v (cv2.BORDER_REFLECT_101) of the pass along u
+    ``hx``, ``hy`` (W, H), each sum float32 in order of rows; (n,) float32. Four sums at a time
+    away from the borders: independent sums interleaved, each in its own order."""
+    h = hx.shape[1]
+    nt = g.size
+    rk = nt // 2
+    n = cols.size
+    out = np.empty(n, np.float32)
+    inside = np.empty(n, np.intp)
+    n_in = 0
+    for j in range(n):
+        mid = mids[j]
+        c = cols[j]
+        if mid - rk >= 0 and mid + rk < h:
+            inside[n_in] = j
+            n_in += 1
+            continue
+        juu = np.float32(0.0)
+        juv = np.float32(0.0)
         for i in range(-rk, rk + 1):
             q = reflect101(mid + i, h)
             juu += g[i + rk] * hx[c, q]
             juv += g[i + rk] * hy[c, q]
-    s = np.float32(-juv / max(juu, np.float32(1e-6)))
-    return min(max(s, np.float32(-1.0)), np.float32(1.0))
+        out[j] = _slope_value(juu, juv)
+    t = 0
+    while t + 4 <= n_in:
+        j0, j1, j2, j3 = inside[t], inside[t + 1], inside[t + 2], inside[t + 3]
+        x0 = hx[cols[j0], mids[j0] - rk : mids[j0] + rk + 1]
+        x1 = hx[cols[j1], mids[j1] - rk : mids[j1] + rk + 1]
+        x2 = hx[cols[j2], mids[j2] - rk : mids[j2] + rk + 1]
+        x3 = hx[cols[j3], mids[j3] - rk : mids[j3] + rk + 1]
+        y0 = hy[cols[j0], mids[j0] - rk : mids[j0] + rk + 1]
+        y1 = hy[cols[j1], mids[j1] - rk : mids[j1] + rk + 1]
+        y2 = hy[cols[j2], mids[j2] - rk : mids[j2] + rk + 1]
+        y3 = hy[cols[j3], mids[j3] - rk : mids[j3] + rk + 1]
+        a0 = a1 = a2 = a3 = np.float32(0.0)
+        b0 = b1 = b2 = b3 = np.float32(0.0)
+        for i in range(nt):
+            gi = g[i]
+            a0 += gi * x0[i]
+            b0 += gi * y0[i]
+            a1 += gi * x1[i]
+            b1 += gi * y1[i]
+            a2 += gi * x2[i]
+            b2 += gi * y2[i]
+            a3 += gi * x3[i]
+            b3 += gi * y3[i]
+        out[j0] = _slope_value(a0, b0)
+        out[j1] = _slope_value(a1, b1)
+        out[j2] = _slope_value(a2, b2)
+        out[j3] = _slope_value(a3, b3)
+        t += 4
+    for tt in range(t, n_in):
+        j = inside[tt]
+        x = hx[cols[j], mids[j] - rk : mids[j] + rk + 1]
+        y = hy[cols[j], mids[j] - rk : mids[j] + rk + 1]
+        juu = np.float32(0.0)
+        juv = np.float32(0.0)
+        for i in range(nt):
+            juu += g[i] * x[i]
+            juv += g[i] * y[i]
+        out[j] = _slope_value(juu, juv)
+    return out
 
 
 @njit(cache=True, inline="always")
@@ -414,22 +472,20 @@ def _row_sample(hp: F32, r: int, x: float) -> np.float32:
 
 
 @njit(cache=True, inline="always")
-def _fill_run(hp, opened, slope, slit, start, stop, c, lim):
+def _fill_run(hp, opened, slit, start, stop, c, lim, s, q0, q1):
     """:func:`fill_dots` for the run of dot pixels in rows ``start`` .. ``stop`` - 1 of column
-    ``c`` (as :func:`_run_bounds` finds it): each pixel interpolated along the local stripe
-    slope (``slope``: the arrays of :func:`_slope_at`) between the clean pixels above and
-    below the run, or the opening where the run is longer than ``lim`` or touches the image
-    border; written to ``slit``."""
+    ``c`` (as :func:`_run_bounds` finds it), in its rows ``q0`` .. ``q1`` - 1: each pixel
+    interpolated along the local stripe slope ``s`` (float32, :func:`_run_slopes`) between
+    the clean pixels above and below the run, or the opening where the run is longer than
+    ``lim`` or touches the image border; written to ``slit``."""
     h = hp.shape[0]
     n = stop - start
     if start == 0 or stop == h or n > lim:
-        for q in range(start, stop):
+        for q in range(q0, q1):
             slit[q, c] = opened[q, c]
         return
-    put, pvt, g, hx, hy, state = slope
-    s = _slope_at(put, pvt, g, hx, hy, state, start + n // 2, c)
-    for t in range(1, n + 1):
-        q = start + t - 1
+    for q in range(q0, q1):
+        t = q - start + 1
         above = _row_sample(hp, start - 1, c - float(s) * t)
         below = _row_sample(hp, stop, c + float(s) * (n + 1 - t))
         frac = t / float(np.float32(n + 1))
@@ -438,22 +494,31 @@ def _fill_run(hp, opened, slope, slit, start, stop, c, lim):
 
 
 @njit(cache=True)
-def _refill_dots(hp, mask, opened, slope, slit, u, r, active, rad, length):
+def _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, u, r, active, rad, length):
     """The dot pixels (``mask`` non-zero) that :func:`_steger_kernel` can read refilled in
-    ``slit`` (H, W) float32: every run of dot pixels met in columns floor(u) - 1 - ``rad`` ..
-    floor(u) + 1 + ``rad`` of the ``active`` points' rows (the Newton steps move by at most
-    1 px before the last evaluation), by :func:`_fill_run`. First the runs are found, in the
-    points' order (row by row), and the slope Gaussian's pass along u is made, column by
-    column in runs of blocks (:func:`_slope_rows` is fastest on long runs), around the middle
-    of each run; then the runs are refilled. ``slope``: the arrays of :func:`_slope_at`."""
-    put, pvt, g, hx, hy, state = slope
+    ``slit`` (H, W) float32: those of columns floor(u) - 1 - ``rad`` .. floor(u) + 1 + ``rad``
+    of the ``active`` points' rows (the Newton steps move by at most 1 px before the last
+    evaluation), each as :func:`fill_dots` refills its run of dot pixels in its column
+    (:func:`_fill_run`). ``put``, ``pvt`` (W, H) are the structure tensor products transposed
+    and ``g`` the slope's Gaussian (:func:`_highpass_and_tensor`); ``hx``, ``hy`` (W, H)
+    float32 work arrays for its pass along u. First the runs are found, in the points' order
+    (row by row), with the rows the windows read in each; then the slope Gaussian's pass along
+    u is made, column by column in runs of blocks (:func:`_slope_rows` is fastest on long
+    runs), around the middle of each run to interpolate, and its pass along v at those middles
+    (:func:`_run_slopes`); then the runs are refilled in those rows."""
     h, w = mask.shape
     rk = g.size // 2
     lim = 2 * length
-    need = np.zeros(state.shape, np.uint8)
-    seen_start = np.full(w, -1)  # the last run found per column (rows start .. stop - 1)
+    nb = -(-h // _SLOPE_BLOCK)
+    need = np.zeros((w, nb), np.uint8)
+    # the last run found per column: rows start .. stop - 1, its index, the rows read in it
+    seen_start = np.full(w, -1)
     seen_stop = np.full(w, -1)
-    runs = np.empty((2 * u.size + 64, 3), np.int32)  # (column, start, stop) of the runs found
+    seen_run = np.full(w, -1)
+    seen_lo = np.zeros(w, np.int64)
+    seen_hi = np.zeros(w, np.int64)
+    # (column, start, stop, first and last row read) of the runs found
+    runs = np.empty((2 * u.size + 64, 5), np.int32)
     n_runs = 0
     for i in range(u.size):
         if not active[i]:
@@ -461,13 +526,23 @@ def _refill_dots(hp, mask, opened, slope, slit, u, r, active, rad, length):
         ri = r[i]
         c0 = int(math.floor(min(max(u[i], 0.0), w - 1.0)))
         for cc in range(max(c0 - 1 - rad, 0), min(c0 + 1 + rad, w - 1) + 1):
-            if not mask[ri, cc] or seen_start[cc] <= ri < seen_stop[cc]:
+            if not mask[ri, cc]:
                 continue
+            if seen_start[cc] <= ri < seen_stop[cc]:
+                seen_lo[cc] = min(seen_lo[cc], ri)
+                seen_hi[cc] = max(seen_hi[cc], ri)
+                continue
+            if seen_run[cc] >= 0:  # the column's last run: the rows read in it
+                runs[seen_run[cc], 3] = seen_lo[cc]
+                runs[seen_run[cc], 4] = seen_hi[cc]
             start, stop = _run_bounds(mask, ri, cc, lim)
             seen_start[cc] = start
             seen_stop[cc] = stop
+            seen_run[cc] = n_runs
+            seen_lo[cc] = ri
+            seen_hi[cc] = ri
             if n_runs == runs.shape[0]:
-                more = np.empty((2 * n_runs, 3), np.int32)
+                more = np.empty((2 * n_runs, 5), np.int32)
                 more[:n_runs] = runs
                 runs = more
             runs[n_runs, 0] = cc
@@ -479,25 +554,44 @@ def _refill_dots(hp, mask, opened, slope, slit, u, r, active, rad, length):
                 continue
             mid = start + n // 2
             lo = max(mid - rk, 0)
-            hi = min(mid + rk, h - 1)
+            hi = min(mid + rk, h - 1)  # reflected rows near the borders fall inside lo .. hi
             for b in range(lo // _SLOPE_BLOCK, hi // _SLOPE_BLOCK + 1):
                 need[cc, b] = 1
-    nb = state.shape[1]
+    for cc in range(w):
+        if seen_run[cc] >= 0:
+            runs[seen_run[cc], 3] = seen_lo[cc]
+            runs[seen_run[cc], 4] = seen_hi[cc]
+    # the slope Gaussian's pass along u where the runs to interpolate need it
     for c in range(w):
         b = 0
         while b < nb:
-            if not need[c, b] or state[c, b]:
+            if not need[c, b]:
                 b += 1
                 continue
             e = b
-            while e < nb and need[c, e] and not state[c, e]:
-                state[c, e] = 1
+            while e < nb and need[c, e]:
                 e += 1
             _slope_rows(put, pvt, g, hx, hy, c, b * _SLOPE_BLOCK, min(e * _SLOPE_BLOCK, h))
             b = e
+    # its pass along v at their middles
+    cols = np.empty(n_runs, np.intp)
+    mids = np.empty(n_runs, np.intp)
+    which = np.empty(n_runs, np.intp)
+    n_in = 0
+    for k in range(n_runs):
+        start = runs[k, 1]
+        stop = runs[k, 2]
+        if start > 0 and stop < h and stop - start <= lim:
+            cols[n_in] = runs[k, 0]
+            mids[n_in] = start + (stop - start) // 2
+            which[n_in] = k
+            n_in += 1
+    slope = np.zeros(n_runs, np.float32)
+    slope[which[:n_in]] = _run_slopes(hx, hy, g, cols[:n_in], mids[:n_in])
     # in the order found: row by row, as the memory lies
-    for j in range(n_runs):
-        _fill_run(hp, opened, slope, slit, runs[j, 1], runs[j, 2], runs[j, 0], lim)
+    for k in range(n_runs):
+        c, start, stop, q0, q1 = runs[k, 0], runs[k, 1], runs[k, 2], runs[k, 3], runs[k, 4]
+        _fill_run(hp, opened, slit, start, stop, c, lim, slope[k], q0, q1 + 1)
 
 
 @njit(cache=True)
@@ -766,6 +860,9 @@ def compile_kernels() -> None:
     img = np.zeros((48, 48), np.uint8)
     img[:, 22:26] = 200
     img[10:12, 30:32] = 120  # a dot beside the stripe
+    img[30:32, 26:28] = 255  # and one touching it (its refill)
     v = np.arange(4.0, 44.0)
     refine_centres(img, np.full(len(v), 23.5), v, np.zeros(len(v), np.int64), 4.0, 2.0)
+    one = np.zeros(1)  # the curved fit's choice, which a straight stripe never reaches
+    _curved_kernel(np.zeros(1, np.intp), np.zeros(1, np.int64), one, one, one, one, 1.0, 1.0, 1)
     row_median_background(img, 3)
