@@ -29,8 +29,9 @@ from multislit.identify.matching import (
     template_col_scale,
 )
 from multislit.identify.order import (
-    _between_agreeing,
+    _agreeing,
     _nanmedian_rows,
+    _run_votes,
     confirm_by_neighbours,
     fill_by_order,
     order_labels,
@@ -427,6 +428,12 @@ def test_junctions_of_two_slits_are_trimmed_further():
     # an unidentified neighbour neither
     unk = near_segment_ends(u, v, seg, np.array([4, -1, 4]), trim=2, junction=8)
     assert set(v[unk & (seg == 0)]) == {0, 1, 48, 49}
+
+
+def _between_agreeing(run, rank, vote, voted, lab):
+    """Do the nearest dot-identified stripes either side of each point agree with its label?"""
+    _, _, _, left, right = _run_votes(run, rank, np.zeros(len(run), np.int64), voted, 1)
+    return _agreeing(rank, vote, lab, left, right)
 
 
 def test_order_label_needs_agreeing_neighbours():

@@ -389,23 +389,6 @@ def _run_votes(run, rank, seg, voted, n_runs):
     return n_segs, lo, hi, left, right
 
 
-def _between_agreeing(
-    run: NDArray[np.intp],
-    rank: NDArray[np.intp],
-    vote: NDArray[np.intp],
-    voted: NDArray[np.bool_],
-    lab: NDArray[np.intp],
-) -> NDArray[np.bool_]:
-    """For each point: do the nearest dot-identified stripes left and right of it in its run
-    agree with each other and with its order label ``lab``? (their slits differ by their rank
-    difference, and ``lab`` is the left one's slit plus the rank step). A run's majority offset
-    can disagree with the stripes right beside a point where a hidden slit leaves no gap wide
-    enough to cut the run."""
-    n_runs = int(run.max()) + 1 if len(run) else 0
-    _, _, _, left, right = _run_votes(run, rank, np.zeros(len(run), np.int64), voted, n_runs)
-    return _agreeing(rank, vote, lab, left, right)
-
-
 def _agreeing(
     rank: NDArray[np.intp],
     vote: NDArray[np.intp],
@@ -413,8 +396,11 @@ def _agreeing(
     left: NDArray[np.intp],
     right: NDArray[np.intp],
 ) -> NDArray[np.bool_]:
-    """:func:`_between_agreeing` from each point's nearest voted points ``left`` and ``right``
-    in its run (:func:`_run_votes`; -1: none)."""
+    """For each point: do the nearest dot-identified stripes left and right of it in its run,
+    ``left`` and ``right`` (:func:`_run_votes`; -1: none), agree with each other and with its
+    order label ``lab``? (their slits differ by their rank difference, and ``lab`` is the left
+    one's slit plus the rank step). A run's majority offset can disagree with the stripes right
+    beside a point where a hidden slit leaves no gap wide enough to cut the run."""
     a, b = np.maximum(left, 0), np.maximum(right, 0)
     ok = (lab >= 0) & (left >= 0) & (right >= 0)
     ok &= (vote[b] - vote[a]) == (rank[b] - rank[a])
@@ -429,7 +415,7 @@ class RowOrder(NamedTuple):
         first or last dot-identified stripe)
     inside : (K,) run label from the run's first to its last dot-identified stripe
     between : (K,) run label strictly between the run's first and last dot-identified
-        stripes, where the nearest ones on either side agree with it (:func:`_between_agreeing`)
+        stripes, where the nearest ones on either side agree with it (:func:`_agreeing`)
     """
 
     run: NDArray[np.intp]
@@ -469,7 +455,7 @@ def order_labels(u: F64, v: F64, seg: I64, slit: I64, conf: F64, num_slits: int)
     r = np.maximum(run, 0)
     span_ = (run >= 0) & (rank >= lo[r]) & (rank <= hi[r])
     lab = np.where(span_ & (rank > lo[r]) & (rank < hi[r]), run_label, -1)
-    # ... where the nearest dot-identified stripes either side agree (:func:`_between_agreeing`)
+    # ... where the nearest dot-identified stripes either side agree (:func:`_agreeing`)
     between = np.where(_agreeing(rank, vote, lab, left, right), lab, -1)
     return RowOrder(run, rank, run_label, np.where(span_, run_label, -1), between)
 
