@@ -1,14 +1,18 @@
 """The identification's compiled kernels against straightforward NumPy computations: the NCC of
 templates with bilinear reference patches, the Newton steps of the epipolar intersections,
-the nearest reference per hypothesis, the sheared patches' sample maps and the template rows'
-lookup."""
+the nearest reference per hypothesis, the candidates' split into scored and sampled ones, the
+sheared patches' sample maps and the template rows' lookup."""
 
 import cv2
 import numpy as np
 import pytest
 
 from multislit.identify import curve_du, curve_u, normalise_patches, sample_patches
-from multislit.identify.matching import _nearest_candidates, _sorted_positions
+from multislit.identify.matching import (
+    _nearest_candidates,
+    _sorted_positions,
+    _split_candidates,
+)
 from multislit.identify.patches import (
     _remap_patches,
     bilinear_ncc,
@@ -147,6 +151,38 @@ def test_intersections_equal_numpy_newton(rng):
     cv = np.broadcast_to(coeffs[1][None], (M, N, 4))
     got = intersect_line_curves(lv, cv, v0[0], iterations=20, tol=0.0)
     assert np.array_equal(got, _numpy_newton(lv, cv, v0[0], 20, 0.0), equal_nan=True)
+
+
+def test_split_candidates_equal_numpy_masks_and_cells(rng):
+    M, K, hw, hh, w, h = 40, 7, 3, 5, 60, 50
+    ws, hs = w - 2 * hw, h - 2 * hh
+    cu = rng.uniform(-5, w + 5, (M, K))
+    cv = rng.uniform(-5, h + 5, (M, K))
+    cu[0, :3] = [hw, w - 1 - hw, np.nan]  # the last cells: n - 2, fraction 1
+    cv[0, :3] = [h - 1 - hh, hh, 10.0]
+    rr = rng.integers(0, 3, (M, K))
+    ok = rng.random((M, K)) < 0.8
+    r_f = np.empty((M, K), np.intp)
+    cells = (
+        np.empty((M, K), np.intp),
+        np.empty((M, K), np.intp),
+        np.empty((M, K)),
+        np.empty((M, K)),
+    )
+    fast, direct = np.empty((M, K), bool), np.empty((M, K), bool)
+    n_max = _split_candidates(cu, cv, rr, ok, hw, hh, w, h, ws, hs, r_f, cells, fast, direct)
+    with np.errstate(invalid="ignore"):
+        inside = (cu >= hw) & (cu <= w - 1 - hw) & (cv >= hh) & (cv <= h - 1 - hh)
+    assert np.array_equal(fast, ok & inside) and np.array_equal(direct, ok & ~inside)
+    assert n_max == (ok & inside).sum(axis=1).max() and fast[0, 0] and fast[0, 1]
+    assert np.array_equal(r_f, np.where(fast, rr, 0))
+    for x, n, c, f in (
+        (np.where(fast, cu, hw) - hw, ws, *cells[::2]),
+        (np.where(fast, cv, hh) - hh, hs, *cells[1::2]),
+    ):
+        want = np.minimum(np.floor(x), n - 2).astype(np.intp)
+        assert np.array_equal(c, want) and np.array_equal(f, x - want)
+    assert cells[2][0, 1] == 1.0 and cells[3][0, 0] == 1.0
 
 
 def test_nearest_candidates_equal_argmin_of_hypot(rng):

@@ -17,7 +17,8 @@ from numba import njit
 from numpy.typing import NDArray
 
 from multislit.identify.patches import (
-    bilinear_ncc,
+    bilinear_ncc_cells,
+    cell_of,
     normalise_patches,
     sample_patches,
     sample_sheared_patches,
@@ -112,8 +113,22 @@ def _sorted_positions(keys, want, pos):
             pos[m, j] = min(p, K - 1)
 
 
+def _middle_curves_u(v: F64, si: NDArray[np.intp], ref: ReferenceSet) -> F64:
+    """(M, N) px: the middle reference's slit curves at the rows ``v[si]`` of the samples."""
+    r = ref.curves.shape[0] // 2
+    return curve_u(ref.curves[r][None, :, :], v[si][:, None])
+
+
 def template_row_shift(
-    u: F64, v: F64, seg: I64, si: NDArray[np.intp], ref: ReferenceSet, hh: int, mode: str
+    u: F64,
+    v: F64,
+    seg: I64,
+    si: NDArray[np.intp],
+    ref: ReferenceSet,
+    hh: int,
+    mode: str,
+    *,
+    ref_u: F64 | None = None,
 ) -> F64 | None:
     """(M, 2*hh+1) px: sideways shift of each template row so that the template follows its
     stripe (``_Options.follow_stripe``); None for ``mode`` "off".
@@ -121,7 +136,9 @@ def template_row_shift(
     A line u = a + s dv is fitted (least squares, all samples at once) to the centres of the
     sample's segment within +-hh rows; a sample with fewer than 3 such centres, or spanning
     fewer than 4 rows, keeps an upright template. The reference curves' own slant at the sample
-    (the curve nearest it in the middle reference) is kept in the template.
+    (the curve nearest it in the middle reference) is kept in the template. ``ref_u`` (M, N)
+    px: the middle reference's curves in the samples' rows, if already at hand (default: made
+    here).
     """
     if mode == "off" or len(si) == 0:
         return None
@@ -146,7 +163,7 @@ def template_row_shift(
     slope = np.where(use, (n * suy - sy * su) / np.where(use, det, 1.0), 0.0)
     # the reference curves' slant around the point stays in the template
     r = ref.curves.shape[0] // 2
-    U = curve_u(ref.curves[r][None, :, :], v[si][:, None])  # (M, N)
+    U = _middle_curves_u(v, si, ref) if ref_u is None else ref_u  # (M, N)
     k = np.argmin(np.abs(U - u[si][:, None]), axis=1)
     s_ref = np.where(use, curve_du(ref.curves[r, k], v[si]), 0.0)
     return (slope - s_ref)[:, None] * dy[None, :]
@@ -159,7 +176,9 @@ _GAP_RANGE = (0.3, 1.6)
 _GAP_AGREE = 0.25
 
 
-def template_col_scale(u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet) -> F64:
+def template_col_scale(
+    u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet, *, ref_u: F64 | None = None
+) -> F64:
     """(M,) px per template column: how far apart each sample's template samples its columns.
 
     A surface turned away from the projector squeezes the stripes and the dots between them
@@ -174,6 +193,8 @@ def template_col_scale(u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet) 
     u, v : (K,) float64, px, all the scan's stripe centres
     si : (M,) intp, the sample points (indices into ``u``, ``v``)
     ref : the prepared references
+    ref_u : (M, N) float64, px, the middle reference's slit curves in the samples' rows, if
+        already at hand (default: made here)
 
     Returns
     -------
@@ -196,8 +217,7 @@ def template_col_scale(u: F64, v: F64, si: NDArray[np.intp], ref: ReferenceSet) 
     gl = np.where((p > 0) & (rows[left] == rows[si]), u[si] - u[left], np.nan)
     gr = np.where((p < len(u) - 1) & (rows[right] == rows[si]), u[right] - u[si], np.nan)
     # the reference's spacing at the sample: the middle reference's curves in its row
-    r = ref.curves.shape[0] // 2
-    U = np.sort(curve_u(ref.curves[r][None, :, :], v[si][:, None]), axis=1)
+    U = np.sort(_middle_curves_u(v, si, ref) if ref_u is None else ref_u, axis=1)
     gaps = np.diff(U, axis=1)
     k = np.minimum(np.argmin(np.abs(U - u[si][:, None]), axis=1), gaps.shape[1] - 1)
     g_ref = gaps[np.arange(len(si)), k]
@@ -218,8 +238,11 @@ def template_geometry(
     """How the templates at the samples ``si`` follow their stripes (``_Options.follow_stripe``
     ``mode``): their rows' sideways shifts (:func:`template_row_shift`) and their columns'
     spacing (:func:`template_col_scale`); (None, None) for "off" (upright templates)."""
-    shift = template_row_shift(u, v, seg, si, ref, hh, mode)
-    return shift, None if shift is None else template_col_scale(u, v, si, ref)
+    if mode == "off" or len(si) == 0:
+        return None, None
+    U = _middle_curves_u(v, si, ref)
+    shift = template_row_shift(u, v, seg, si, ref, hh, mode, ref_u=U)
+    return shift, template_col_scale(u, v, si, ref, ref_u=U)
 
 
 def _in_volume(ref: ReferenceSet, uv: F64, margin: float) -> NDArray[np.bool_]:
@@ -334,14 +357,14 @@ def _ncc_at(
     sums: NDArray[np.float32],
     patches: NDArray[np.float32],
     r: NDArray[np.intp],
-    uu: F64,
-    vv: F64,
+    cells: tuple[NDArray[np.intp], NDArray[np.intp], F64, F64],
     hw: int,
     hh: int,
-) -> F64:
+    out: F64,
+) -> None:
     """NCC of each sample's template (its patch, normalised) with bilinear reference patches
-    at given centres (:func:`~multislit.identify.patches.bilinear_ncc` on the reference's dot
-    images).
+    at given places (:func:`~multislit.identify.patches.bilinear_ncc_cells` on the reference's
+    dot images).
 
     Parameters
     ----------
@@ -349,15 +372,14 @@ def _ncc_at(
     patches : (m, 2*hh+1, 2*hw+1) float32, the samples' patches (the templates before
         :func:`~multislit.identify.patches.normalise_patches`)
     r : (m, C) intp, reference image of each candidate
-    uu, vv : (m, C) float64, px, patch centres, with the patch inside the image
+    cells : x0, y0 (m, C) intp and fx, fy (m, C) float64: the pixel cell of each patch's
+        top-left sample position (centre - half size) and the fractions past it
+        (:func:`~multislit.identify.patches.cell_of`), with the patch inside the image
     hw, hh : patch half sizes, px
-
-    Returns
-    -------
-    ncc : (m, C) float64, 0 for a flat (all equal) reference patch or template
+    out : (m, C) float64, the NCC, 0 for a flat (all equal) reference patch or template
     """
     images, images_t = _scoring_images(ref, hw, hh)
-    return bilinear_ncc(images, patches, r, uu - hw, vv - hh, sums, hw, hh, images_t=images_t)
+    bilinear_ncc_cells(images, patches, r, *cells, sums, hw, hh, out, images_t=images_t)
 
 
 def _scoring_images(ref: ReferenceSet, hw: int, hh: int) -> tuple[NDArray, NDArray | None]:
@@ -431,8 +453,10 @@ def _hypotheses(
         valid_any &= allowed
     ok = np.isfinite(cv) & valid_any[:, :, None]
     # search along the epipolar line: (M, N, R', O)
-    cu = cu[..., None] + offs * direction[:, None, None, 0:1]
-    cv = cv[..., None] + offs * direction[:, None, None, 1:2]
+    cu, cv = cu[..., None], cv[..., None]
+    if p.search_px:
+        cu = cu + offs * direction[:, None, None, 0:1]
+        cv = cv + offs * direction[:, None, None, 1:2]
     rr = np.broadcast_to(r_sel[..., None], cu.shape)
     ok = np.broadcast_to(ok[..., None], cu.shape)
     return cu, cv, rr, ok, valid_any
@@ -451,6 +475,33 @@ def _dot_rise(lines: F64) -> F64:
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(np.abs(dx) > 1e-12, dy / dx, 0.0)
     return np.clip(t, -_MAX_RISE, _MAX_RISE)
+
+
+@njit(cache=True)
+def _split_candidates(cu, cv, rr, ok, hw, hh, w, h, ws, hs, r_fast, cells, fast, direct):
+    """Sort the candidate patch centres ``cu``, ``cv`` (M, K) px (in reference ``rr``, where
+    ``ok``) of :func:`score_candidates`: ``fast`` where the patch of half size ``hw``, ``hh``
+    lies inside the ``w`` x ``h`` image (scored by :func:`_ncc_at`, from ``r_fast`` and the
+    ``cells`` x0, y0, fx, fy of the top-left sample position in ``ws`` x ``hs`` windows; 0
+    elsewhere), ``direct`` where it does not (sampled). Returns the most ``fast`` candidates
+    of a sample."""
+    x0, y0, fx, fy = cells
+    M, K = cu.shape
+    n_max = 0
+    for m in range(M):
+        n = 0
+        for k in range(K):
+            u, v = cu[m, k], cv[m, k]
+            inside = hw <= u <= w - 1 - hw and hh <= v <= h - 1 - hh  # (False for NaN)
+            f = ok[m, k] and inside
+            fast[m, k] = f
+            direct[m, k] = ok[m, k] and not inside
+            r_fast[m, k] = rr[m, k] if f else 0
+            x0[m, k], fx[m, k] = cell_of((u if f else hw) - hw, ws)
+            y0[m, k], fy[m, k] = cell_of((v if f else hh) - hh, hs)
+            n += f
+        n_max = max(n_max, n)
+    return n_max
 
 
 def score_candidates(
@@ -488,19 +539,29 @@ def score_candidates(
     w, h = ref.image_size
     hw, hh = p.template_size(ref)
     M = len(pu)
-    scores = np.full((M, N), np.nan)
     if M == 0:
-        return scores
+        return np.full((M, N), np.nan)
     sums = ref.window_sums(hw, hh)
     uv = np.c_[pu, pv]
     lines = ref.epipolar_lines(uv)  # (M, 3), unit normal (a, b)
     cu, cv, rr, ok, valid_any = _hypotheses(ref, uv, lines, hw, hh, p, allowed)
-    # a patch shifted off the image is zero-padded: sample it directly (rare)
-    with np.errstate(invalid="ignore"):
-        inside = (cu >= hw) & (cu <= w - 1 - hw) & (cv >= hh) & (cv <= h - 1 - hh)
-    direct = ok & ~inside
-    fast = ok & inside
     shape = cu.shape
+    # a patch shifted off the image is zero-padded: sample it directly (rare)
+    rr_f = np.empty((M, cu[0].size), np.intp)
+    cells = (np.empty_like(rr_f), np.empty_like(rr_f), np.empty(rr_f.shape), np.empty(rr_f.shape))
+    fast_flat, direct = np.empty(rr_f.shape, np.bool_), np.empty(shape, np.bool_)
+    n_max = _split_candidates(
+        *(a.reshape(M, -1) for a in (cu, cv, rr, ok)),
+        hw,
+        hh,
+        w,
+        h,
+        *sums.shape[1:3],
+        rr_f,
+        cells,
+        fast_flat,
+        direct.reshape(M, -1),
+    )
     if row_shift is None:
         patches = sample_patches(scan_dots, uv, hw, hh)
     else:
@@ -514,22 +575,19 @@ def score_candidates(
             col_scale=col_scale,
         )
     # a flat template (no dots around the point) says nothing
-    flat = ~np.any(patches != patches.reshape(M, -1)[:, :1, None], axis=(1, 2))
-    rr_f = np.where(fast, rr, 0).reshape(M, -1)
-    cu_f = np.where(fast, cu, hw).reshape(M, -1)
-    cv_f = np.where(fast, cv, hh).reshape(M, -1)
-    sc = np.full(shape, -np.inf)
+    flat = ~np.any(patches != patches[:, :1, :1], axis=(1, 2))
+    # (every entry is scored when every sample has all its candidates)
+    sc = np.empty(shape) if n_max == fast_flat.shape[1] else np.full(shape, -np.inf)
     sc_flat = sc.reshape(M, -1)
-    fast_flat = fast.reshape(M, -1)
-    n_max = int(fast_flat.sum(axis=1).max())
     if n_max == fast_flat.shape[1]:
-        sc_flat[:] = _ncc_at(ref, sums, patches, rr_f, cu_f, cv_f, hw, hh)
+        _ncc_at(ref, sums, patches, rr_f, cells, hw, hh, sc_flat)
     elif n_max > 0:
         # few hypotheses per sample (coarse to fine, missing candidates): score only those,
         # packed to the front of each sample's row
         cols = np.argsort(~fast_flat, axis=1, kind="stable")[:, :n_max]
-        packed = [np.take_along_axis(a, cols, axis=1) for a in (rr_f, cu_f, cv_f)]
-        scored = _ncc_at(ref, sums, patches, *packed, hw, hh)
+        r_p, *cells_p = (np.take_along_axis(a, cols, axis=1) for a in (rr_f, *cells))
+        scored = np.empty(cols.shape)
+        _ncc_at(ref, sums, patches, r_p, tuple(cells_p), hw, hh, scored)
         np.put_along_axis(sc_flat, cols, scored, axis=1)
     sc_flat[~fast_flat] = -np.inf
     if direct.any():
@@ -541,8 +599,7 @@ def score_candidates(
             sel = tuple(q[rr[di] == r] for q in di)
             pat = normalise_patches(sample_patches(ref.dots[r], np.c_[cu[sel], cv[sel]], hw, hh))
             sc[sel] = np.einsum("ij,ij->i", pat, tmpl[sel[0]])
-    best = sc.reshape(M, N, -1).max(axis=2)
-    blk = np.where(valid_any & np.isfinite(best), best, np.nan)
-    blk[flat] = np.nan
-    scores[:] = blk
+    best = sc.reshape(M, N) if sc.size == M * N else sc.reshape(M, N, -1).max(axis=2)
+    scores = np.where(valid_any & np.isfinite(best), best, np.nan)
+    scores[flat] = np.nan
     return scores

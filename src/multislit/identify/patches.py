@@ -256,11 +256,14 @@ def _remap_patches(
     """:func:`sample_patches` as ``cv2.remap`` samples them (the same float32 operations;
     zero outside the image); ``row_shift`` and ``row_rise`` (M, ph) move each patch row
     sideways and down, ``col_scale`` (M,) spaces its columns (see
-    :func:`sample_sheared_patches`)."""
+    :func:`sample_sheared_patches`). Tall patches (ph > pw) come as the (M, ph, pw) transposed
+    view of a C-contiguous (M, pw, ph) array (:func:`bilinear_ncc` reads them so)."""
     m = len(centres)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
     zeros = np.broadcast_to(np.zeros(1), (m, ph))
     out = np.empty((m, ph, pw), np.float32)
+    if ph > pw:  # tall patches are laid out column by column, as bilinear_ncc reads them
+        out = np.empty((m, pw, ph), np.float32).transpose(0, 2, 1)
     _remap_kernel(
         np.ascontiguousarray(image, np.float32),
         np.asarray(centres, np.float64),
@@ -306,7 +309,8 @@ def sample_sheared_patches(
 
     Returns
     -------
-    patches : (M, 2*half_h+1, 2*half_w+1) float32 (zero outside the image)
+    patches : (M, 2*half_h+1, 2*half_w+1) float32 (zero outside the image); for tall
+        patches (half_h > half_w) a transposed view of (M, 2*half_w+1, 2*half_h+1) memory
     """
     ph = 2 * half_h + 1
     shift = np.asarray(row_shift, dtype=np.float64)
@@ -389,9 +393,31 @@ def window_sums(image: F32, half_w: int, half_h: int) -> F32:
     return out
 
 
-def _cell(x: F64, n: int) -> NDArray[np.intp]:
-    """Left end of the interpolation cell of ``x`` in 0..n-1: floor(x), but n-2 at x = n-1."""
-    return np.minimum(np.floor(x), n - 2).astype(np.intp)
+def _cells(x: F64, n: int) -> tuple[NDArray[np.intp], F64]:
+    """Left end of the interpolation cell of each ``x`` (...) float64 in 0..n-1 (floor(x), but
+    n-2 at x = n-1) and the fraction ``x`` lies past it, in one compiled pass."""
+    x = np.ascontiguousarray(x, np.float64)
+    c = np.empty(x.shape, np.intp)
+    f = np.empty(x.shape)
+    _cells_kernel(x.reshape(-1), n, c.reshape(-1), f.reshape(-1))
+    return c, f
+
+
+@njit(cache=True, inline="always")
+def cell_of(x, n):
+    """Compiled :func:`_cells` of one position ``x`` (float64) in 0..n-1: the cell's left end
+    (int) and the fraction (float64). For kernels without fast-math flags (inlined into one
+    with them, the fraction's later uses may be reassociated and round differently)."""
+    e = np.floor(x)
+    e = n - 2.0 if e > n - 2.0 else e
+    return int(e), x - e
+
+
+@njit(cache=True)
+def _cells_kernel(x, n, c, f):
+    """:func:`_cells` of the flat ``x`` into ``c``, ``f``."""
+    for k in range(x.size):
+        c[k], f[k] = cell_of(x[k], n)
 
 
 @njit(cache=True, inline="always")
@@ -456,10 +482,10 @@ def bilinear_patch_moments(
     y = np.asarray(y, dtype=np.float64)
     shape = np.broadcast_shapes(x.shape, y.shape, () if image is None else np.shape(image))
     x, y = np.broadcast_to(x, shape).ravel(), np.broadcast_to(y, shape).ravel()
-    x0, y0 = _cell(x, ws), _cell(y, hs)
+    (x0, fx), (y0, fy) = _cells(x, ws), _cells(y, hs)
     img = np.zeros(x.size, np.intp) if image is None else np.broadcast_to(image, shape).ravel()
     s1, s2 = np.empty(x.size), np.empty(x.size)
-    _moments_kernel(stack, img.astype(np.intp), x0, y0, x - x0, y - y0, bool(x_major), s1, s2)
+    _moments_kernel(stack, img.astype(np.intp), x0, y0, fx, fy, bool(x_major), s1, s2)
     return s1.reshape(shape), s2.reshape(shape)
 
 
@@ -632,21 +658,54 @@ def bilinear_ncc(
     -------
     ncc : (m, C) float64, 0 for a flat (all equal) image patch or sample patch
     """
+    ws, hs = sums.shape[1:3]
+    x0, fx = _cells(x, ws)
+    y0, fy = _cells(y, hs)
+    out = np.zeros(np.shape(which))
+    bilinear_ncc_cells(
+        images, patches, which, x0, y0, fx, fy, sums, half_w, half_h, out, images_t=images_t
+    )
+    return out
+
+
+def bilinear_ncc_cells(
+    images: F32,
+    patches: F32,
+    which: NDArray[np.intp],
+    x0: NDArray[np.intp],
+    y0: NDArray[np.intp],
+    fx: F64,
+    fy: F64,
+    sums: F32,
+    half_w: int,
+    half_h: int,
+    out: F64,
+    *,
+    images_t: F32 | None = None,
+) -> None:
+    """:func:`bilinear_ncc` with the patches' positions given by their pixel cells (as
+    :func:`cell_of` makes them from ``x``, ``y``, with ``n`` the window counts ``sums.shape[1]``
+    and ``sums.shape[2]``), written into ``out``.
+
+    Parameters
+    ----------
+    images, patches, which, sums, half_w, half_h, images_t : as for :func:`bilinear_ncc`
+    x0, y0 : (m, C) intp, px, the left (top) end of the cell of each patch's top-left sample
+        position
+    fx, fy : (m, C) float64, in [0, 1], the position's fraction past it
+    out : (m, C) float64, the NCC (0 for a flat image patch or sample patch)
+    """
     m, C = np.shape(which)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
-    out = np.zeros((m, C))
     if m == 0 or C == 0:
-        return out
-    ws, hs = sums.shape[1:3]
-    x0, y0 = _cell(x, ws), _cell(y, hs)
-    fx, fy = x - x0, y - y0
+        return
     p3 = np.asarray(patches, np.float32).reshape(m, ph, pw)
     which = np.asarray(which, np.intp)
     tall = ph > pw
     if not tall:
         src = np.ascontiguousarray(images, np.float32)
         _ncc_kernel(src, np.ascontiguousarray(p3), which, y0, x0, fy, fx, sums, tall, out)
-        return out
+        return
     src = images.transpose(0, 2, 1) if images_t is None else images_t
     src = np.ascontiguousarray(src, np.float32)
     step = max(1, _TRANSPOSE_BYTES // (4 * ph * pw))  # samples whose patches are transposed at once
@@ -654,7 +713,6 @@ def bilinear_ncc(
         sl = slice(a, a + step)
         pt = np.ascontiguousarray(p3[sl].transpose(0, 2, 1))
         _ncc_kernel(src, pt, which[sl], x0[sl], y0[sl], fx[sl], fy[sl], sums, tall, out[sl])
-    return out
 
 
 def compile_kernels() -> None:

@@ -224,14 +224,14 @@ def intersect_line_curves(
 
     Returns
     -------
-    v : float64, px, broadcast shape of the three; NaN where there is no intersection
+    v : float64, px, broadcast shape of the three (a view of the grid's memory, laid out in
+        its order); NaN where there is no intersection
     """
     lines = np.asarray(lines, dtype=np.float64)
     coeffs = np.asarray(coeffs, dtype=np.float64)
     shape = np.broadcast_shapes(lines.shape[:-1], coeffs.shape[:-1], np.shape(v0))
-    v = np.array(np.broadcast_to(v0, shape), dtype=np.float64)  # a copy, updated in place
-    if v.size == 0:
-        return v
+    if 0 in shape:
+        return np.zeros(shape)
     # the grid (P, Q, S): the axes where only the curves vary (S) go last, where only the
     # lines vary (Q) next, the rest (P) first; lines and curves are made (P, Q) and (P, S)
     nd = len(shape)
@@ -252,9 +252,11 @@ def intersect_line_curves(
     )
     idx = tuple([slice(None)] * len(rest) + [0] * len(only_l))
     ct = np.ascontiguousarray(np.moveaxis(cb[idx].reshape(P, S, -1), 2, 1))
-    vg = np.ascontiguousarray(v.transpose(order)).reshape(P, Q, S)
+    # the start rows, copied into the grid's order (and updated there in place)
+    vg = np.array(np.broadcast_to(v0, shape).transpose(order), np.float64, order="C")
+    vg = vg.reshape(P, Q, S)
     _newton_kernel(ln, ct, vg, int(iterations), float(tol), max(1, int(block or Q)))
-    return np.ascontiguousarray(vg.reshape([shape[i] for i in order]).transpose(np.argsort(order)))
+    return vg.reshape([shape[i] for i in order]).transpose(np.argsort(order))
 
 
 # --------------------------------------------------------------------------- reference set
