@@ -475,24 +475,16 @@ def _rows_to_sample(order, seg, v, sample):
     (segment, v) (:func:`~.segments.by_segment`)."""
     out = np.full(len(seg), np.inf)
     n = len(order)
-    last = -1  # forward: the nearest sample at or before, backward: at or after
-    for t in range(n):
-        i = order[t]
-        if last >= 0 and seg[last] != seg[i]:
-            last = -1
-        if sample[i]:
-            last = i
-        if last >= 0:
-            out[i] = abs(v[last] - v[i])
-    last = -1
-    for t in range(n - 1, -1, -1):
-        i = order[t]
-        if last >= 0 and seg[last] != seg[i]:
-            last = -1
-        if sample[i]:
-            last = i
-        if last >= 0:
-            out[i] = min(out[i], abs(v[last] - v[i]))
+    for backward in (False, True):  # the nearest sample at or before, then at or after
+        last = -1
+        for s in range(n):
+            i = order[n - 1 - s if backward else s]
+            if last >= 0 and seg[last] != seg[i]:
+                last = -1
+            if sample[i]:
+                last = i
+            if last >= 0:
+                out[i] = min(out[i], abs(v[last] - v[i]))
     return out
 
 

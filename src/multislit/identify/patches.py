@@ -716,21 +716,19 @@ def bilinear_ncc_cells(
 
 
 def compile_kernels() -> None:
-    """Compile the identification's Numba kernels now: the patch samplers
+    """Compile this module's Numba kernels now: the patch samplers
     (:func:`sample_patch_columns`, :func:`sample_sheared_patches`), :func:`bilinear_ncc` for
-    tall and wide patches, :func:`bilinear_patch_moments`, the epipolar intersections
-    (:func:`~multislit.identify.reference.intersect_line_curves`) and the candidates' checks
-    of :func:`~multislit.identify.matching.score_candidates`.
+    tall and wide patches and :func:`bilinear_patch_moments`.
 
     Numba compiles them on first use (a few seconds) and caches the machine code on disk beside
-    the package, so only the first reference preparation after an install pays it.
+    the package, so only the first run after an install pays it. The identification's other
+    kernels are compiled by :func:`~multislit.identify.labelling.compile_kernels`, which calls
+    this one.
     """
-    from multislit.identify import matching, reference  # (both import this module)
-
     img = np.zeros((16, 16), np.float32)
     one = np.array([[8.0, 8.0]])
     sample_patch_columns(img, one, 2, 3)
-    sample_patches(img, np.array([[0.5, 0.5]]), 2, 3)  # at the edge: by cv2.remap
+    sample_patches(img, np.array([[0.5, 0.5]]), 2, 3)  # at the edge
     sample_sheared_patches(
         img, one, 2, 3, np.zeros((1, 7)), row_rise=np.zeros((1, 7)), col_scale=np.ones(1)
     )
@@ -742,19 +740,3 @@ def compile_kernels() -> None:
             stack, t, np.zeros((1, 1), np.intp), np.ones((1, 1)), np.ones((1, 1)), sums, hw, hh
         )
         bilinear_patch_moments(sums, np.ones(1), np.ones(1), np.zeros(1, np.intp), x_major=True)
-    lines = np.array([[[1.0, 0.0, -5.0]]])
-    curves = np.array([[[0.0, 0.0, 0.0, 5.0]]])
-    vv = reference.intersect_line_curves(
-        lines[:, :, None], curves[:, None], np.zeros((1, 1, 1)), block=1
-    )
-    uu = np.empty_like(vv)
-    matching._mask_candidates(curves, np.array([[[0.0, 9.0]]]), 1, 1, 16, 16, vv, uu)
-    r, cu, cv, ok = (
-        np.empty((1, 1), np.intp),
-        np.empty((1, 1)),
-        np.empty((1, 1)),
-        np.empty((1, 1), bool),
-    )
-    matching._nearest_candidates(uu, vv, one, r, cu, cv, ok)
-    keys = np.arange(3.0)
-    matching._sorted_positions(keys, keys[None], np.empty((1, 3), np.intp))

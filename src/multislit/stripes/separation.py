@@ -266,25 +266,27 @@ def _mask_runs_v(mask, words, cap):
                 x &= ~(byte << np.uint64(bit))
                 cur = (here >> np.uint64(bit)) & byte != zero
                 prev = (above >> np.uint64(bit)) & byte != zero
-                c = blk * 8 + bit // 8
-                if cur and not prev:
-                    start[c] = r
-                elif prev and not cur:
-                    cols[k] = c
-                    starts[k] = start[c]
-                    stops[k] = r
-                    k += 1
+                k = _run_edge(blk * 8 + bit // 8, r, cur, prev, start, cols, starts, stops, k)
         for c in range(8 * nw, w):  # no words: pixel by pixel
             cur = r < h and mask[r, c] != 0
             prev = r > 0 and mask[r - 1, c] != 0
-            if cur and not prev:
-                start[c] = r
-            elif prev and not cur:
-                cols[k] = c
-                starts[k] = start[c]
-                stops[k] = r
-                k += 1
+            k = _run_edge(c, r, cur, prev, start, cols, starts, stops, k)
     return cols[:k], starts[:k], stops[:k]
+
+
+@njit(cache=True, inline="always")
+def _run_edge(c, r, cur, prev, start, cols, starts, stops, k):
+    """One column ``c`` of :func:`_mask_runs_v` at row ``r``: a run starts where the pixel is
+    set (``cur``) and the one above not (``prev``); it ends, and is written as run ``k``, where
+    the one above is set and the pixel not. Returns the number of runs written."""
+    if cur and not prev:
+        start[c] = r
+    elif prev and not cur:
+        cols[k] = c
+        starts[k] = start[c]
+        stops[k] = r
+        k += 1
+    return k
 
 
 @njit(cache=True)
