@@ -18,6 +18,10 @@ OpenCV's internal buffers not), measured in a separate, untimed run; "max RSS" i
 process's resident-set high-water mark at the end (``resource.getrusage``: interpreter,
 libraries, the simulated captures and the reference included).
 
+Where the time goes: the functions that take the most time of their own (cProfile's
+tottime, ms per frame; a compiled kernel counts as one function, OpenCV calls by name) over one
+more run of every scan, profiled apart from the timed runs.
+
 Compiled kernels (Numba) are loaded or compiled before timing: every frame runs once,
 untimed, first.
 
@@ -30,8 +34,10 @@ replaces the speed section of benchmarks/RESULTS.md.)
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
+import pstats
 import resource
 import statistics
 import sys
@@ -56,6 +62,9 @@ from multislit.sim import RigSpec, simulate_capture  # noqa: E402
 from multislit.stripes import extract_slits, refine_centres  # noqa: E402
 
 STAGES = ("extract", "identify", "refine", "triangulate")
+GOALS_MS = {25: 16.0, 49: 33.0}  # the camera-rate goals per frame, one core
+GOAL_PASSES = 8  # the goal in medianBlur passes at 25 slits
+TOP = 10  # functions listed in the profile
 
 
 def frame(img, ref, cam, planes) -> tuple[list[float], int]:
@@ -126,7 +135,29 @@ def run(num_slits: int, repeat: int, workdir: Path) -> tuple[list[dict], dict]:
             peak_mb=peak / 2**20,
         )
         rows.append(row)
-    return rows, {"slits": num_slits, "prepare_s": prep, "first_s": first}
+    prof = cProfile.Profile()
+    prof.enable()
+    for img in images.values():
+        frame(img, ref, cam, planes)
+    prof.disable()
+    top = hot_spots(pstats.Stats(prof), len(images))
+    return rows, {"slits": num_slits, "prepare_s": prep, "first_s": first, "top": top}
+
+
+def hot_spots(stats: pstats.Stats, frames: int) -> list[tuple[str, float]]:
+    """The ``TOP`` functions by time of their own: (``module:function`` or the built-in's
+    name, ms per frame)."""
+    own = []
+    for (path, _, func), (_, _, tottime, _, _) in stats.stats.items():
+        if path == "~":  # a built-in: "<built-in method cv2.morphologyEx>" and the like
+            name = func.strip("<>{}").replace("built-in method ", "")
+        else:
+            name = f"{Path(path).stem}:{func}"
+        own.append((name, 1e3 * tottime / frames))
+    merged: dict[str, float] = {}
+    for name, ms in own:
+        merged[name] = merged.get(name, 0.0) + ms
+    return sorted(merged.items(), key=lambda kv: -kv[1])[:TOP]
 
 
 _ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
@@ -156,6 +187,22 @@ def table(rows: list[dict], preps: list[dict]) -> str:
         )
         lines.append(f"- {n} slits: {parts}")
     lines.append("")
+    for n in sorted({r["slits"] for r in rows}):
+        rs = [r for r in rows if r["slits"] == n]
+        total = statistics.median(r["total_ms"] for r in rs)
+        goal = GOALS_MS.get(n)
+        if goal is not None:
+            passes = statistics.median(r["ratio"] for r in rs)
+            extra = f"; {passes:.0f} passes against {GOAL_PASSES}" if n == 25 else ""
+            lines.append(
+                f"- {n} slits against the goal: {total:.0f} ms against {goal:.0f} ms "
+                f"({total / goal:.1f}x){extra}"
+            )
+    lines.append("")
+    for p in preps:
+        spots = ", ".join(f"{name} {ms:.1f}" for name, ms in p["top"])
+        lines.append(f"Where the time goes, {p['slits']} slits (ms per frame, own time): {spots}.")
+        lines.append("")
     for p in preps:
         s = p["prepare_s"]
         lines.append(
