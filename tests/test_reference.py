@@ -121,6 +121,34 @@ def _sparse_dots(rng, shape):
     return cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.8)
 
 
+def _window_sums_by_integrals(image, half_w, half_h):
+    """window_sums from cv2.integral images of the float64 products, one per sum."""
+    im = np.asarray(image, np.float64)
+    ph, pw = 2 * half_h + 1, 2 * half_w + 1
+    prods = [
+        im,
+        im * im,
+        im[:, :-1] * im[:, 1:],
+        im[:-1, :] * im[1:, :],
+        im[:-1, :-1] * im[1:, 1:],
+        im[:-1, 1:] * im[1:, :-1],
+    ]
+    out = np.zeros((im.shape[0] - ph + 1, im.shape[1] - pw + 1, 6), np.float32)
+    for c, q in enumerate(prods):
+        ii = cv2.integral(q, sdepth=cv2.CV_64F)
+        box = ii[ph:, pw:] - ii[:-ph, pw:] - ii[ph:, :-pw] + ii[:-ph, :-pw]
+        out[: box.shape[0], : box.shape[1], c] = box
+    return out
+
+
+@pytest.mark.parametrize(("shape", "half_w", "half_h"), [((70, 90), 4, 9), ((41, 23), 7, 3)])
+def test_window_sums_equal_integral_images(rng, shape, half_w, half_h):
+    img = _sparse_dots(rng, shape) + rng.uniform(0, 1, shape).astype(np.float32)
+    want = _window_sums_by_integrals(img, half_w, half_h)
+    assert np.array_equal(window_sums(img, half_w, half_h), want)
+    assert np.array_equal(window_sums(img, half_w, half_h, x_major=True), want.transpose(1, 0, 2))
+
+
 @pytest.mark.parametrize(("half_w", "half_h"), [(4, 9), (7, 3)])
 def test_bilinear_patch_moments_match_sampled_patches(rng, half_w, half_h):
     img = _sparse_dots(rng, (70, 90))

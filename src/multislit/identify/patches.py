@@ -7,7 +7,6 @@ images by normalised cross-correlation.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
@@ -349,7 +348,7 @@ def normalise_patches(p: F32) -> F32:
 WINDOW_SUMS = ("sum", "sum_sq", "right", "down", "down_right", "down_left")
 
 
-def window_sums(image: F32, half_w: int, half_h: int) -> F32:
+def window_sums(image: F32, half_w: int, half_h: int, *, x_major: bool = False) -> F32:
     """Sums over every (2*half_h+1, 2*half_w+1) window of an image, of its pixels and of the
     products of neighbouring pixels: what the mean and norm of a bilinear patch need.
 
@@ -361,6 +360,10 @@ def window_sums(image: F32, half_w: int, half_h: int) -> F32:
     ----------
     image : (H, W) float32
     half_w, half_h : patch half sizes, px
+    x_major : return the sums with the image axes swapped, (W', H', 6), so that the sums of
+        windows down a column lie close together in memory (as
+        :meth:`~multislit.identify.reference.ReferenceSet.window_sums` keeps them); default
+        False, (H', W', 6)
 
     Returns
     -------
@@ -370,27 +373,72 @@ def window_sums(image: F32, half_w: int, half_h: int) -> F32:
         I[y+j, x+i] I[y+j+1, x+i], ``down_right`` = sum I[y+j, x+i] I[y+j+1, x+i+1],
         ``down_left`` = sum I[y+j, x+i+1] I[y+j+1, x+i]. Sums that would reach past the last
         row or column are 0 (they are never used: a bilinear patch's cell stays inside).
+        Each is a difference of four float64 integral-image values (summed as
+        ``cv2.integral`` sums them), rounded to float32.
     """
-    im = np.asarray(image, dtype=np.float64)
+    im = np.ascontiguousarray(image, dtype=np.float32)
     h, w = im.shape
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
     if h <= ph or w <= pw:
         raise ValueError(f"image {w}x{h} px is not larger than a {pw}x{ph} px window")
     nh, nw = h - ph + 1, w - pw + 1
-    prods = [
-        im,
-        im * im,
-        im[:, :-1] * im[:, 1:],
-        im[:-1, :] * im[1:, :],
-        im[:-1, :-1] * im[1:, 1:],
-        im[:-1, 1:] * im[1:, :-1],
-    ]
-    out = np.zeros((nh, nw, len(prods)), np.float32)
-    for c, q in enumerate(prods):
-        ii = cv2.integral(q, sdepth=cv2.CV_64F)  # (h'+1, w'+1)
-        box = ii[ph:, pw:] - ii[:-ph, pw:] - ii[ph:, :-pw] + ii[:-ph, :-pw]
-        out[: box.shape[0], : box.shape[1], c] = box
+    shape = (nw, nh, len(WINDOW_SUMS)) if x_major else (nh, nw, len(WINDOW_SUMS))
+    out = np.zeros(shape, np.float32)
+    _window_sums_kernel(im, ph, pw, bool(x_major), out)
     return out
+
+
+#: Row offset and column offset of each product's second pixel (:data:`WINDOW_SUMS` order);
+#: a product's image is (H - dy, W - dx)
+_PRODUCT_SHIFTS = ((0, 0), (0, 0), (0, 1), (1, 0), (1, 1), (1, 1))
+_SUMS_TILE = 64  # px; the transposed writes go tile by tile, to stay in cache
+
+
+@njit(cache=True, inline="always")
+def _product(im, c, y, x):
+    """Product ``c`` (:data:`WINDOW_SUMS` order) at (y, x), float64 (exact for float32)."""
+    a = np.float64(im[y, x])
+    if c == 0:
+        return a
+    if c == 1:
+        return a * a
+    if c == 2:
+        return a * np.float64(im[y, x + 1])
+    if c == 3:
+        return a * np.float64(im[y + 1, x])
+    if c == 4:
+        return a * np.float64(im[y + 1, x + 1])
+    return np.float64(im[y, x + 1]) * np.float64(im[y + 1, x])
+
+
+@njit(cache=True)
+def _window_sums_kernel(im, ph, pw, x_major, out):
+    """The sums of :func:`window_sums` into ``out`` (zeros, (H', W', 6) or x-major (W', H',
+    6)): per product, its float64 integral image as ``cv2.integral`` sums it (a running row sum
+    added to the row above), then the box sums ((A - B) - C) + D, rounded to float32."""
+    h, w = im.shape
+    ii = np.zeros((h + 1, w + 1))
+    for c in range(6):
+        dy, dx = _PRODUCT_SHIFTS[c]
+        hq, wq = h - dy, w - dx
+        for y in range(hq):
+            s = 0.0
+            for x in range(wq):
+                s += _product(im, c, y, x)
+                ii[y + 1, x + 1] = ii[y, x + 1] + s
+        nh, nw = hq - ph + 1, wq - pw + 1
+        if not x_major:
+            for y in range(nh):
+                for x in range(nw):
+                    b = ii[y + ph, x + pw] - ii[y, x + pw] - ii[y + ph, x] + ii[y, x]
+                    out[y, x, c] = np.float32(b)
+            continue
+        for y0 in range(0, nh, _SUMS_TILE):
+            for x0 in range(0, nw, _SUMS_TILE):
+                for x in range(x0, min(x0 + _SUMS_TILE, nw)):
+                    for y in range(y0, min(y0 + _SUMS_TILE, nh)):
+                        b = ii[y + ph, x + pw] - ii[y, x + pw] - ii[y + ph, x] + ii[y, x]
+                        out[x, y, c] = np.float32(b)
 
 
 def _cells(x: F64, n: int) -> tuple[NDArray[np.intp], F64]:
@@ -734,7 +782,8 @@ def compile_kernels() -> None:
     )
     stack = np.zeros((1, 16, 16), np.float32)
     for hw, hh in ((2, 3), (3, 2)):
-        sums = window_sums(stack[0], hw, hh).transpose(1, 0, 2)[None].copy()
+        sums = window_sums(stack[0], hw, hh, x_major=True)[None]
+        window_sums(stack[0], hw, hh)
         t = np.zeros((1, (2 * hw + 1) * (2 * hh + 1)), np.float32)
         bilinear_ncc(
             stack, t, np.zeros((1, 1), np.intp), np.ones((1, 1)), np.ones((1, 1)), sums, hw, hh

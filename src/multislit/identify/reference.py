@@ -308,9 +308,7 @@ class ReferenceSet:
         hw, hh = int(half_w), int(half_h)
         return self._cached(
             ("window_sums", hw, hh),
-            lambda: np.stack(
-                [np.ascontiguousarray(window_sums(d, hw, hh).transpose(1, 0, 2)) for d in self.dots]
-            ),
+            lambda: np.stack([window_sums(d, hw, hh, x_major=True) for d in self.dots]),
         )
 
     def padded_dots(self, transposed: bool = False) -> F32:
