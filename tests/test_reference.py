@@ -147,6 +147,11 @@ def test_window_sums_equal_integral_images(rng, shape, half_w, half_h):
     want = _window_sums_by_integrals(img, half_w, half_h)
     assert np.array_equal(window_sums(img, half_w, half_h), want)
     assert np.array_equal(window_sums(img, half_w, half_h, x_major=True), want.transpose(1, 0, 2))
+    out = np.full(want.transpose(1, 0, 2).shape, np.nan, np.float32)  # every element written
+    window_sums(img, half_w, half_h, x_major=True, out=out)
+    assert np.array_equal(out, want.transpose(1, 0, 2))
+    with pytest.raises(ValueError, match="out must be"):
+        window_sums(img, half_w, half_h, out=out)
 
 
 @pytest.mark.parametrize(("half_w", "half_h"), [(4, 9), (7, 3)])

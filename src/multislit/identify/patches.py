@@ -348,7 +348,9 @@ def normalise_patches(p: F32) -> F32:
 WINDOW_SUMS = ("sum", "sum_sq", "right", "down", "down_right", "down_left")
 
 
-def window_sums(image: F32, half_w: int, half_h: int, *, x_major: bool = False) -> F32:
+def window_sums(
+    image: F32, half_w: int, half_h: int, *, x_major: bool = False, out: F32 | None = None
+) -> F32:
     """Sums over every (2*half_h+1, 2*half_w+1) window of an image, of its pixels and of the
     products of neighbouring pixels: what the mean and norm of a bilinear patch need.
 
@@ -364,6 +366,8 @@ def window_sums(image: F32, half_w: int, half_h: int, *, x_major: bool = False) 
         windows down a column lie close together in memory (as
         :meth:`~multislit.identify.reference.ReferenceSet.window_sums` keeps them); default
         False, (H', W', 6)
+    out : float32 C-contiguous array of the returned shape to write the sums into (every
+        element is written); default None, a new array
 
     Returns
     -------
@@ -383,7 +387,10 @@ def window_sums(image: F32, half_w: int, half_h: int, *, x_major: bool = False) 
         raise ValueError(f"image {w}x{h} px is not larger than a {pw}x{ph} px window")
     nh, nw = h - ph + 1, w - pw + 1
     shape = (nw, nh, len(WINDOW_SUMS)) if x_major else (nh, nw, len(WINDOW_SUMS))
-    out = np.zeros(shape, np.float32)
+    if out is None:
+        out = np.empty(shape, np.float32)
+    elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}")
     _window_sums_kernel(im, ph, pw, bool(x_major), out)
     return out
 
@@ -413,9 +420,10 @@ def _product(im, c, y, x):
 
 @njit(cache=True)
 def _window_sums_kernel(im, ph, pw, x_major, out):
-    """The sums of :func:`window_sums` into ``out`` (zeros, (H', W', 6) or x-major (W', H',
-    6)): per product, its float64 integral image as ``cv2.integral`` sums it (a running row sum
-    added to the row above), then the box sums ((A - B) - C) + D, rounded to float32."""
+    """The sums of :func:`window_sums` into ``out`` ((H', W', 6) or x-major (W', H', 6)): per
+    product, its float64 integral image as ``cv2.integral`` sums it (a running row sum added to
+    the row above), then the box sums ((A - B) - C) + D, rounded to float32; 0 where a
+    product's window would reach past the image."""
     h, w = im.shape
     ii = np.zeros((h + 1, w + 1))
     for c in range(6):
@@ -427,12 +435,17 @@ def _window_sums_kernel(im, ph, pw, x_major, out):
                 s += _product(im, c, y, x)
                 ii[y + 1, x + 1] = ii[y, x + 1] + s
         nh, nw = hq - ph + 1, wq - pw + 1
+        zero = np.float32(0.0)
         if not x_major:
+            out[nh:, :, c] = zero
+            out[:, nw:, c] = zero
             for y in range(nh):
                 for x in range(nw):
                     b = ii[y + ph, x + pw] - ii[y, x + pw] - ii[y + ph, x] + ii[y, x]
                     out[y, x, c] = np.float32(b)
             continue
+        out[nw:, :, c] = zero
+        out[:, nh:, c] = zero
         for y0 in range(0, nh, _SUMS_TILE):
             for x0 in range(0, nw, _SUMS_TILE):
                 for x in range(x0, min(x0 + _SUMS_TILE, nw)):

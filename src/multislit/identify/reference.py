@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from multislit.errors import ReferenceImageError
 from multislit.identify.patches import (
+    WINDOW_SUMS,
     normalise_patches,
     sample_patch_columns,
     sample_patches,
@@ -308,8 +309,16 @@ class ReferenceSet:
         hw, hh = int(half_w), int(half_h)
         return self._cached(
             ("window_sums", hw, hh),
-            lambda: np.stack([window_sums(d, hw, hh, x_major=True) for d in self.dots]),
+            lambda: self._stacked_sums(hw, hh),
         )
+
+    def _stacked_sums(self, hw: int, hh: int) -> F32:
+        """The x-major window sums of every dot image, written into one array."""
+        r, h, w = self.dots.shape
+        out = np.empty((r, w - 2 * hw, h - 2 * hh, len(WINDOW_SUMS)), np.float32)
+        for d, o in zip(self.dots, out, strict=True):
+            window_sums(d, hw, hh, x_major=True, out=o)
+        return out
 
     def padded_dots(self, transposed: bool = False) -> F32:
         """The dot images with ``_ROW_PAD`` zeros after each row, (R, H, W + pad) float32
