@@ -85,6 +85,14 @@ def _gather_kernel(img, r, c, offsets, wts):
     return out
 
 
+def _binomial_weights(taps: int) -> F64:
+    """(taps,) float64, the binomial weights of ``taps`` rows (at least 1), summing to 1."""
+    taps = max(int(taps), 1)
+    if taps == 1:
+        return np.ones(1)
+    return np.array([math.comb(taps - 1, i) for i in range(taps)], np.float64) / 2.0 ** (taps - 1)
+
+
 def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 1) -> F64:
     """Values img[r, c + offsets] as (K, len(offsets)) float64, averaged over ``taps`` rows.
 
@@ -93,28 +101,57 @@ def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 
     tilted stripe keeps the row's profile symmetric about its centre and divides the noise.
     Columns are clamped to the image too. One compiled pass.
     """
-    taps = max(int(taps), 1)
-    if taps == 1:
-        wts = np.ones(1)
-    else:
-        wts = np.array([math.comb(taps - 1, i) for i in range(taps)], np.float64) / 2.0 ** (
-            taps - 1
-        )
     return _gather_kernel(
         img,
         np.ascontiguousarray(r, np.intp),
         np.ascontiguousarray(c, np.intp),
         np.ascontiguousarray(offsets, np.intp),
-        wts,
+        _binomial_weights(taps),
     )
 
 
 @njit(cache=True)
-def _row_maxima(s, thr, near, use_near):
-    """Rows and columns (K,) of the pixels of ``s`` (H, W) greater than their left and not
-    less than their right neighbour and than ``thr`` (float64, compared exactly), outside
-    ``near`` (H, W) where ``use_near``; row-major. One compiled pass: each row's tests into a
-    byte per pixel (no branches: the loop vectorises), read 8 bytes at a time."""
+def _peak_samples(img, r, c, wts):
+    """The three samples of :func:`find_stripe_centres`'s sub-pixel fit at the peaks (``r``,
+    ``c``) (K,) intp: the values of :func:`_gather` (``wts`` the binomial rows) at c - 2 ..
+    c + 2, the peak moved to the largest of those at c - 1 .. c + 1 (the first of equal
+    ones, as np.argmax). Returns the moved columns (K,) intp and the samples left of, at and
+    right of them (K,) float64 each; one pass, no (K, 5) array."""
+    h, w = img.shape
+    half = wts.size // 2
+    n = r.size
+    cm = np.empty(n, np.intp)
+    left = np.empty(n, np.float64)
+    mid = np.empty(n, np.float64)
+    right = np.empty(n, np.float64)
+    rows = np.empty(wts.size, np.intp)
+    v = np.empty(5, np.float64)
+    for k in range(n):
+        for i in range(wts.size):
+            rows[i] = min(max(r[k] + i - half, 0), h - 1)
+        for j in range(5):
+            col = min(max(c[k] + j - 2, 0), w - 1)
+            acc = 0.0
+            for i in range(wts.size):
+                acc += wts[i] * float(img[rows[i], col])
+            v[j] = acc
+        j = 1
+        if v[2] > v[j]:
+            j = 2
+        if v[3] > v[j]:
+            j = 3
+        cm[k] = c[k] + j - 2
+        left[k] = v[j - 1]
+        mid[k] = v[j]
+        right[k] = v[j + 1]
+    return cm, left, mid, right
+
+
+@njit(cache=True)
+def _row_maxima_kernel(s, thr, strict, near, use_near):
+    """:func:`_row_maxima` with the threshold ``thr`` in the image's type: a peak exceeds it
+    (``strict``) or reaches it. One compiled pass: each row's tests into a byte per pixel
+    (no branches, in the image's own lanes: the loop vectorises), read 8 bytes at a time."""
     h, w = s.shape
     nw = (w + 7) // 8
     flags = np.zeros(8 * nw, np.uint8)
@@ -126,11 +163,18 @@ def _row_maxima(s, thr, near, use_near):
     k = 0
     zero = np.uint64(0)
     byte = np.uint64(0xFF)
+    fl = flags[1 : max(w - 1, 1)]  # 1-D views from 0: the loop vectorises
     for r in range(h):
         row = s[r]
-        for c in range(1, w - 1):
-            m = row[c]
-            flags[c] = (float(m) > thr) & (m > row[c - 1]) & (m >= row[c + 1])
+        left, mid, right = row[: max(w - 2, 0)], row[1 : max(w - 1, 1)], row[2:]
+        if strict:
+            for c in range(w - 2):
+                m = mid[c]
+                fl[c] = (m > thr) & (m > left[c]) & (m >= right[c])
+        else:
+            for c in range(w - 2):
+                m = mid[c]
+                fl[c] = (m >= thr) & (m > left[c]) & (m >= right[c])
         for blk in range(nw):
             x = words[blk]
             while x != zero:
@@ -145,23 +189,80 @@ def _row_maxima(s, thr, near, use_near):
     return rr[:k].copy(), cc[:k].copy()
 
 
+def _row_maxima(
+    s: NDArray, thr: float, near: NDArray[np.bool_], use_near: bool
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Rows and columns (K,) of the pixels of ``s`` (H, W) greater than their left and not
+    less than their right neighbour and than ``thr`` (float64, compared exactly), outside
+    ``near`` (H, W) where ``use_near``; row-major. The threshold is compared in the image's
+    type (the same pixels): an integer pixel exceeds ``thr`` where it reaches floor(thr) + 1,
+    a float32 one where it exceeds the largest float32 <= ``thr``."""
+    empty = np.empty(0, np.intp)
+    if math.isnan(thr):
+        return empty, empty.copy()
+    if np.issubdtype(s.dtype, np.integer):
+        info = np.iinfo(s.dtype)
+        first = math.floor(thr) + 1 if math.isfinite(thr) else (info.min if thr < 0 else None)
+        if first is None or first > info.max:
+            return empty, empty.copy()
+        return _row_maxima_kernel(s, s.dtype.type(max(first, info.min)), False, near, use_near)
+    if s.dtype == np.float32:
+        with np.errstate(over="ignore"):
+            t = np.float32(thr)
+        if float(t) > thr:
+            t = np.nextafter(t, np.float32(-np.inf))
+        return _row_maxima_kernel(s, t, True, near, use_near)
+    return _row_maxima_kernel(s, thr, True, near, use_near)
+
+
+@njit(cache=True)
+def _log_arguments(a, b, c):
+    """The samples of :func:`_three_point` whose logs it takes: (K,) float64 copies of ``a``,
+    ``b``, ``c`` with 1 where any of the three is <= 0, and the mask (K,) bool where all three
+    are > 0."""
+    n = a.size
+    ok = np.empty(n, np.bool_)
+    xa = np.empty(n)
+    xb = np.empty(n)
+    xc = np.empty(n)
+    for k in range(n):
+        good = (a[k] > 0) & (c[k] > 0) & (b[k] > 0)
+        ok[k] = good
+        xa[k] = a[k] if good else 1.0
+        xb[k] = b[k] if good else 1.0
+        xc[k] = c[k] if good else 1.0
+    return xa, xb, xc, ok
+
+
+@njit(cache=True)
+def _three_point_fit(a, b, c, la, lb, lc, ok, gaussian):
+    """:func:`_three_point` from the samples ``a``, ``b``, ``c`` (K,) and the logs ``la``,
+    ``lb``, ``lc`` (K,) of :func:`_log_arguments`' values (``ok`` its mask): the same
+    operations, in the same order, as the array formulation, one point at a time."""
+    n = a.size
+    delta = np.empty(n)
+    width = np.empty(n)
+    for k in range(n):
+        den_g = la[k] - 2 * lb[k] + lc[k]
+        good = ok[k] and den_g < 0
+        width[k] = FWHM_PER_SIGMA * np.sqrt(-1.0 / den_g) if good else np.nan
+        den_p = a[k] - 2 * b[k] + c[k]
+        d = 0.5 * (a[k] - c[k]) / den_p if den_p < 0 else 0.0
+        if gaussian and good:  # else the parabola (where the log is undefined)
+            d = 0.5 * (la[k] - lc[k]) / den_g
+        delta[k] = min(max(d, -0.5), 0.5)
+    return delta, width
+
+
 def _three_point(a: F64, b: F64, c: F64, method: str) -> tuple[F64, F64]:
-    """Sub-pixel offset and FWHM from three samples at -1, 0, +1 (b the maximum)."""
-    ok = (a > 0) & (c > 0) & (b > 0)
-    la = np.log(np.where(ok, a, 1.0))
-    lb = np.log(np.where(ok, b, 1.0))
-    lc = np.log(np.where(ok, c, 1.0))
-    den_g = la - 2 * lb + lc
-    ok &= den_g < 0
-    width = np.where(ok, FWHM_PER_SIGMA * np.sqrt(-1.0 / np.where(ok, den_g, -1.0)), np.nan)
-    den_p = a - 2 * b + c
-    delta_p = np.where(den_p < 0, 0.5 * (a - c) / np.where(den_p < 0, den_p, -1.0), 0.0)
-    if method == "gaussian":
-        delta_g = 0.5 * (la - lc) / np.where(ok, den_g, -1.0)
-        delta = np.where(ok, delta_g, delta_p)  # parabola where the log is undefined
-    else:
-        delta = delta_p
-    return np.clip(delta, -0.5, 0.5), width
+    """Sub-pixel offset and FWHM from three samples at -1, 0, +1 (b the maximum): a parabola
+    through their logs (``method`` "gaussian", where all three are > 0 and the logs curve
+    down) or through the samples (elsewhere, and for "parabolic"); the offset clipped to
+    +-0.5, the FWHM NaN where there is no Gaussian. The logs by NumPy, the rest compiled."""
+    la, lb, lc, ok = _log_arguments(a, b, c)
+    for x in (la, lb, lc):
+        np.log(x, out=x)
+    return _three_point_fit(a, b, c, la, lb, lc, ok, method == "gaussian")
 
 
 def _window_offset(
@@ -338,11 +439,7 @@ def find_centres_validated(
     su, sv, speak, swidth, sreach, near = _saturated_centres(s, sat)
     r, c = _row_maxima(s, thr_exact, near, sv.size > 0)
     # smoothed samples at c-2 .. c+2; re-centre on the smoothed maximum among c-1 .. c+1
-    vals = _gather(s, r, c, np.arange(-2, 3), taps)
-    j = 1 + np.argmax(vals[:, 1:4], axis=1)
-    k = np.arange(r.size)
-    c = c + (j - 2)
-    a, b, cc = vals[k, j - 1], vals[k, j], vals[k, j + 1]
+    c, a, b, cc = _peak_samples(s, r, c, _binomial_weights(taps))
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
     fwhm = sw if sw is not None else float(np.nanmedian(width)) if r.size else 3.0
     if not math.isfinite(fwhm):

@@ -233,9 +233,22 @@ def _row_interp(img: NDArray, r: int, u: float) -> np.float32:
     w = img.shape[1]
     u = min(max(u, 0.0), w - 1.0)
     u0 = min(int(u), w - 2) if w > 1 else 0  # u >= 0: int() is the floor
+    return _row_lerp(img, r, u0, min(u0 + 1, w - 1), u)
+
+
+@njit(cache=True, inline="always")
+def _row_interp_inside(img: NDArray, r: int, u: float) -> np.float32:
+    """:func:`_row_interp` at a column ``u`` in 0 .. W - 2 (the clamps change nothing)."""
+    u0 = int(u)
+    return _row_lerp(img, r, u0, u0 + 1, u)
+
+
+@njit(cache=True, inline="always")
+def _row_lerp(img: NDArray, r: int, u0: int, u1: int, u: float) -> np.float32:
+    """Row ``r`` of ``img`` between columns ``u0`` and ``u1`` at column ``u``, in float32."""
     f = np.float32(u - u0)
     a = np.float32(img[r, u0])
-    b = np.float32(img[r, min(u0 + 1, w - 1)])
+    b = np.float32(img[r, u1])
     return np.float32(a + np.float32(np.float32(b - a) * f))
 
 
@@ -249,9 +262,10 @@ def _mask_runs_v(mask, words, cap):
     (e.g. the number of mask pixels)."""
     h, w = mask.shape
     nw = words.shape[1]
-    cols = np.empty(cap, np.intp)
-    starts = np.empty(cap, np.intp)
-    stops = np.empty(cap, np.intp)
+    # one spare slot: a changed byte writes run k whether or not it ends one
+    cols = np.empty(cap + 1, np.intp)
+    starts = np.empty(cap + 1, np.intp)
+    stops = np.empty(cap + 1, np.intp)
     start = np.full(w, -1, np.intp)
     zero = np.uint64(0)
     byte = np.uint64(0xFF)
@@ -266,7 +280,15 @@ def _mask_runs_v(mask, words, cap):
                 x &= ~(byte << np.uint64(bit))
                 cur = (here >> np.uint64(bit)) & byte != zero
                 prev = (above >> np.uint64(bit)) & byte != zero
-                k = _run_edge(blk * 8 + bit // 8, r, cur, prev, start, cols, starts, stops, k)
+                # :func:`_run_edge` without branches (starts and ends come in no predictable
+                # order): the run is written as run k always and kept only where it ends
+                c = blk * 8 + bit // 8
+                s0 = start[c]
+                start[c] = r if cur and not prev else s0
+                cols[k] = c
+                starts[k] = s0
+                stops[k] = r
+                k += prev and not cur
         for c in range(8 * nw, w):  # no words: pixel by pixel
             cur = r < h and mask[r, c] != 0
             prev = r > 0 and mask[r - 1, c] != 0
@@ -298,7 +320,7 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
     sideways along the stripe by the run's slope (``slopes`` (K,) float32 px per row; (0,) for
     straight above and below) and read by linear interpolation along their rows; ``rint``:
     round, for integer images."""
-    h = hp.shape[0]
+    h, w = hp.shape
     for i in range(cols.size):
         c = cols[i]
         start = starts[i]
@@ -319,6 +341,17 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
                 out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
             continue
         s = float(slopes[i])
+        reach = abs(s) * (n + 1)  # no sample lies further from column c (NaN: none inside)
+        if float(c) - reach >= 0.0 and float(c) + reach <= w - 2.0:
+            # every sample inside the row: no clamping, the same values
+            for t in range(1, n + 1):
+                above = _row_interp_inside(hp, start - 1, float(c) - s * t)
+                below = _row_interp_inside(hp, stop, float(c) + s * (n + 1 - t))
+                val = float(above) + float(np.float32(below - above)) * (t / den)
+                if rint:
+                    val = np.rint(val)
+                out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+            continue
         for t in range(1, n + 1):
             above = _row_interp(hp, start - 1, float(c) - s * t)
             below = _row_interp(hp, stop, float(c) + s * (n + 1 - t))
