@@ -6,8 +6,14 @@ import cv2
 import numpy as np
 import pytest
 
-from multislit.stripes.openings import FOLLOW_ANGLES_DEG, follow_stripe_opening, line_kernel
-from multislit.stripes.slope import lean_map
+from multislit.stripes.openings import (
+    FOLLOW_ANGLES_DEG,
+    follow_stripe_opening,
+    line_kernel,
+    stripe_opening,
+    vertical_opening,
+)
+from multislit.stripes.slope import lean_map, slope_sigma
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
@@ -56,3 +62,16 @@ def test_lean_map_reads_the_stripes_direction():
         assert m.shape == (50, 50)
         assert abs(np.nanmedian(m[5:45, 5:45]) - a) < 4.0, a
     assert np.isnan(lean_map(np.zeros((64, 64), np.float32), 4.5)).all()
+
+
+def test_stripe_opening_cells_limit_where_it_follows_stripes():
+    rng = np.random.default_rng(3)
+    hp = (rng.random((64, 48)) * 200).astype(np.uint8)
+    whole = stripe_opening(hp, 7, 5.0)
+    shape = lean_map(hp, slope_sigma(7)).shape
+    np.testing.assert_array_equal(stripe_opening(hp, 7, 5.0, cells=np.ones(shape, bool)), whole)
+    np.testing.assert_array_equal(
+        stripe_opening(hp, 7, 5.0, cells=np.zeros(shape, bool)), vertical_opening(hp, 7)
+    )
+    with pytest.raises(ValueError, match="cells must have the lean map's shape"):
+        stripe_opening(hp, 7, 5.0, cells=np.ones((3, 3), bool))

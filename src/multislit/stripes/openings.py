@@ -177,7 +177,9 @@ def follow_stripe_opening(
     _follow_cells(hp, opened, line, int(decimation), offs, count, float(tau))
 
 
-def stripe_opening(hp: NDArray, length: int, tau: float) -> NDArray:
+def stripe_opening(
+    hp: NDArray, length: int, tau: float, *, cells: NDArray[np.bool_] | None = None
+) -> NDArray:
     """The opening that finds the dots: ``hp``'s grey opening with a line of ``length`` px,
     vertical (:func:`vertical_opening`), along the stripe where it leans
     (:func:`follow_stripe_opening` at the pixels the vertical one lowers by more than the dot
@@ -188,6 +190,10 @@ def stripe_opening(hp: NDArray, length: int, tau: float) -> NDArray:
     hp : (H, W) highpass image (uint8, uint16 or float32)
     length : int, px, the line's length
     tau : float, intensity units, the dot threshold above the opening
+    cells : (H // D, W // D) bool, the cells of :func:`~multislit.stripes.slope.lean_map`
+        (D = :data:`~multislit.stripes.slope.LEAN_DECIMATION`) where the opening follows
+        leaning stripes; elsewhere it stays vertical. The opening along a line is made pixel by
+        pixel, so inside the cells it equals the one made everywhere. Default None: every cell
 
     Returns
     -------
@@ -195,5 +201,9 @@ def stripe_opening(hp: NDArray, length: int, tau: float) -> NDArray:
     """
     opened = vertical_opening(hp, length)
     angles = lean_map(hp, slope_sigma(length))
+    if cells is not None:
+        if cells.shape != angles.shape:
+            raise ValueError(f"cells must have the lean map's shape {angles.shape}")
+        angles[~cells] = np.nan
     follow_stripe_opening(hp, opened, length, angles, LEAN_DECIMATION, tau)
     return opened

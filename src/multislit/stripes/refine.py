@@ -18,7 +18,12 @@ from multislit.stripes.separation import (
     row_median_background,
 )
 from multislit.stripes.sizes import FWHM_PER_SIGMA, median_stride, opening_length
-from multislit.stripes.slope import reflect101, slope_sigma, stripe_slope
+from multislit.stripes.slope import (
+    LEAN_DECIMATION,
+    reflect101,
+    slope_sigma,
+    stripe_slope,
+)
 from multislit.stripes.validation import SlitExtractionError, as_image, int_at_least, positive_px
 
 F32 = NDArray[np.float32]
@@ -188,13 +193,15 @@ def refine_centres(
     hp, put, pvt, g = _highpass_and_tensor(img, sw, R, length)
     active = (seg >= 0) & (inner >= 0)
     tau = 3.0 * noise_from_difference(img)
-    opened = stripe_opening(hp, length, tau)
+    rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
+    # the opening follows leaning stripes only in the cells the dot mask is read at
+    cells = _opening_cells(uu, r, active, rad, length, h, w)
+    opened = stripe_opening(hp, length, tau, cells=cells)
     mask = dot_mask(hp, opened, tau)
     # the slit image: the highpass with the dots refilled only where the points' windows read
     # them; the slope's Gaussian only where those refills need it
     slit = hp.copy()
     hx, hy = np.empty((w, h), np.float32), np.empty((w, h), np.float32)
-    rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
     _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, uu, r, active, rad, length)
     m, row_ok = _steger_kernel(slit, uu, r, active, ss, max_shift_px)
     delta, ok, delta2, gain = _fit_kernel(seg, key, order, pos, skey, inner, m, uu, row_ok, R, deg)
@@ -319,7 +326,9 @@ def _check_options(
 
 # --------------------------------------------------------------------------- compiled kernels
 # The refinement reads the slit image only in the points' Steger windows. The highpass, the
-# structure tensor's products and the dot mask are whole-image passes (OpenCV); the dot
+# structure tensor's products, the vertical opening, the stripes' lean and the dot mask are
+# whole-image passes (OpenCV); the opening along leaning stripes is made only in the cells
+# the dot mask is read at (:func:`_opening_cells`); the dot
 # refill (a run of dot pixels at a time, only in the rows the windows read) and the stripe
 # slope it needs (the tensor's Gaussian: its pass along u column by column, for the blocks of
 # rows around those runs; its pass along v at their middles) are made in compiled loops only
@@ -493,6 +502,47 @@ def _fill_run(hp, opened, slit, start, stop, c, lim, s, q0, q1):
         slit[q, c] = np.float32(min(val, float(hp[q, c])))
 
 
+def _opening_cells(
+    u: F64,
+    r: NDArray[np.intp],
+    active: NDArray[np.bool_],
+    rad: int,
+    length: int,
+    h: int,
+    w: int,
+) -> NDArray[np.bool_]:
+    """The cells of :func:`~multislit.stripes.slope.lean_map` ((``h`` // D, ``w`` // D), D x D
+    px, the last ones taking the image's remainder) that can hold a pixel whose opening :func:`_refill_dots`
+    reads through the dot mask, for the ``active`` points at columns ``u`` (K,) px, rows ``r``
+    (K,), in an ``h`` x ``w`` px image: the mask is read in columns floor(u) - 1 - ``rad`` ..
+    floor(u) + 1 + ``rad`` of the point's row and, along the dot runs there, up to 2
+    ``length`` + 1 rows above and 2 ``length`` below; the mask's dilation widens that by 1 px.
+    The cells of those columns in the point's row, widened along v by (2 ``length`` + 2) // D
+    + 1 cells, which covers those rows. (nr, nc) bool."""
+    f = LEAN_DECIMATION
+    seeds = _seed_cells(u, r, active, rad, w, max(h // f, 1), max(w // f, 1))
+    reach = (2 * length + 2) // f + 1
+    cells = cv2.dilate(seeds, np.ones((2 * reach + 1, 1), np.uint8))
+    return cells.view(np.bool_)
+
+
+@njit(cache=True)
+def _seed_cells(u, r, active, rad, w, nr, nc):
+    """(nr, nc) uint8, 1 on the cells of D x D px (:data:`LEAN_DECIMATION`, a compile-time
+    constant; the last ones taking the remainder) that hold columns floor(u) - 2 - ``rad`` ..
+    floor(u) + 2 + ``rad`` of an ``active`` point's row ``r``."""
+    f = LEAN_DECIMATION
+    cells = np.zeros((nr, nc), np.uint8)
+    for i in range(u.size):
+        if not active[i]:
+            continue
+        c0 = int(math.floor(min(max(u[i], 0.0), w - 1.0)))
+        q = min(r[i] // f, nr - 1)
+        for cc in range(max(c0 - 2 - rad, 0) // f, min(c0 + 2 + rad, w - 1) // f + 1):
+            cells[q, min(cc, nc - 1)] = 1
+    return cells
+
+
 @njit(cache=True)
 def _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, u, r, active, rad, length):
     """The dot pixels (``mask`` non-zero) that :func:`_steger_kernel` can read refilled in
@@ -502,7 +552,9 @@ def _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, u, r, active, rad,
     (:func:`_fill_run`). ``put``, ``pvt`` (W, H) are the structure tensor products transposed
     and ``g`` the slope's Gaussian (:func:`_highpass_and_tensor`); ``hx``, ``hy`` (W, H)
     float32 work arrays for its pass along u. First the runs are found, in the points' order
-    (row by row), with the rows the windows read in each; then the slope Gaussian's pass along
+    (row by row), with the rows the windows read in each (a run longer than 2 ``length``, which
+    keeps the opening, is walked once and then followed row by row, not walked again from
+    each row); then the slope Gaussian's pass along
     u is made, column by column in runs of blocks (:func:`_slope_rows` is fastest on long
     runs), around the middle of each run to interpolate, and its pass along v at those middles
     (:func:`_run_slopes`); then the runs are refilled in those rows."""
@@ -528,7 +580,12 @@ def _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, u, r, active, rad,
         for cc in range(max(c0 - 1 - rad, 0), min(c0 + 1 + rad, w - 1) + 1):
             if not mask[ri, cc]:
                 continue
-            if seen_start[cc] <= ri < seen_stop[cc]:
+            start, stop = seen_start[cc], seen_stop[cc]
+            if start <= ri < stop or (stop - start > lim and start - 1 <= ri <= stop):
+                # in the column's last run; or next to it where that is longer than lim: the
+                # same run (a dot pixel next to its dot pixels), kept by the opening
+                seen_start[cc] = min(start, ri)
+                seen_stop[cc] = max(stop, ri + 1)
                 seen_lo[cc] = min(seen_lo[cc], ri)
                 seen_hi[cc] = max(seen_hi[cc], ri)
                 continue
@@ -594,6 +651,10 @@ def _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, u, r, active, rad,
         _fill_run(hp, opened, slit, start, stop, c, lim, slope[k], q0, q1 + 1)
 
 
+#: Points per batch of :func:`_steger_kernel`.
+_STEGER_BATCH = 16
+
+
 @njit(cache=True)
 def _steger_kernel(slit, u, r, active, ss, max_shift):
     """Steger's centres (K,) px and where they are usable, by two Newton steps from ``u`` on
@@ -611,34 +672,64 @@ def _steger_kernel(slit, u, r, active, ss, max_shift):
         gk[k + rad] = math.exp(-0.5 * k * k * inv2)
     m = u.copy()
     ok = np.zeros(K, np.bool_)
-    for i in range(K):
-        if not active[i]:
-            continue
-        ri = r[i]
-        mi = u[i]
-        good = False
+    # the active points _STEGER_BATCH at a time: each Newton step's samples for the batch,
+    # then its sums (:func:`_steger_sums`), the batch's independent sums interleaved
+    idx = np.flatnonzero(active)
+    nb = _STEGER_BATCH
+    p = np.empty((2 * rad + 1, nb))
+    mi, fb, eb, ek = np.empty(nb), np.empty(nb), np.empty(nb), np.empty(nb)
+    d1, d2 = np.empty(nb), np.empty(nb)
+    good = np.zeros(nb, np.bool_)
+    for s0 in range(0, idx.size, nb):
+        n = min(nb, idx.size - s0)
+        for j in range(n):
+            mi[j] = u[idx[s0 + j]]
         for _ in range(2):  # Newton steps
-            x = min(max(mi, 0.0), w - 1.0)
-            c0 = int(math.floor(x))
-            f = c0 - x
-            e = math.exp(-f * inv2)
-            ek = math.exp(-0.5 * f * f * inv2) / e**rad  # the k = -rad factor
-            d1 = 0.0
-            d2 = 0.0
-            for k in range(-rad, rad + 1):
-                p = float(slit[ri, min(max(c0 + k, 0), w - 1)])
-                t = f + k
-                g = ek * gk[k + rad]
-                ek *= e
-                d1 += p * t * g
-                d2 += p * (t * t * inv4 - inv2) * g
-            d1 *= inv2
-            good = d2 < 0
-            step = -d1 / d2 if good else 0.0
-            mi = mi + min(max(step, -1.0), 1.0)
-        m[i] = mi
-        ok[i] = good and abs(mi - u[i]) <= max_shift
+            for j in range(n):
+                ri = r[idx[s0 + j]]
+                x = min(max(mi[j], 0.0), w - 1.0)
+                c0 = int(math.floor(x))
+                f = c0 - x
+                e = math.exp(-f * inv2)
+                fb[j] = f
+                eb[j] = e
+                ek[j] = math.exp(-0.5 * f * f * inv2) / e**rad  # the k = -rad factor
+                for k in range(-rad, rad + 1):
+                    p[k + rad, j] = float(slit[ri, min(max(c0 + k, 0), w - 1)])
+            _steger_sums(p, fb[:n], eb[:n], ek[:n], gk, d1[:n], d2[:n], inv2, inv4)
+            for j in range(n):
+                good[j] = d2[j] < 0
+                step = -(d1[j] * inv2) / d2[j] if good[j] else 0.0
+                mi[j] = mi[j] + min(max(step, -1.0), 1.0)
+        for j in range(n):
+            i = idx[s0 + j]
+            m[i] = mi[j]
+            ok[i] = good[j] and abs(mi[j] - u[i]) <= max_shift
     return m, ok
+
+
+@njit(cache=True, inline="always")
+def _steger_sums(p, f, e, ek, gk, d1, d2, inv2, inv4):
+    """The Gaussian derivative sums of :func:`_steger_kernel` for a batch of n points, each
+    in order of the taps k = -rad .. rad: the samples ``p`` (2 rad + 1, >= n) px values, the
+    offsets t = ``f`` + k (``f`` (n,) px), the weights ``ek`` ``gk[k]`` (``gk`` (2 rad + 1,)
+    the Gaussian at integer k; ``ek`` (n,), the k = -rad factor, times ``e`` (n,) after each
+    tap, updated); ``d1`` (n,) the sum of p t weight, ``d2`` (n,) of p (t^2 ``inv4`` -
+    ``inv2``) weight (float64, written)."""
+    n = f.size
+    rad = gk.size // 2
+    d1[:] = 0.0
+    d2[:] = 0.0
+    for k in range(-rad, rad + 1):
+        gkk = gk[k + rad]
+        pk = p[k + rad]
+        fk = float(k)
+        for j in range(n):
+            t = f[j] + fk
+            g = ek[j] * gkk
+            ek[j] *= e[j]
+            d1[j] += pk[j] * t * g
+            d2[j] += pk[j] * (t * t * inv4 - inv2) * g
 
 
 @njit(cache=True)
