@@ -335,10 +335,7 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
             above = np.float32(hp[start - 1, c])
             below = np.float32(hp[stop, c])
             for t in range(1, n + 1):
-                val = float(above) + float(np.float32(below - above)) * (t / den)
-                if rint:
-                    val = np.rint(val)
-                out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+                out[start + t - 1, c] = _blend(above, below, t / den, rint, hp[start + t - 1, c])
             continue
         s = float(slopes[i])
         reach = abs(s) * (n + 1)  # no sample lies further from column c (NaN: none inside)
@@ -347,18 +344,22 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
             for t in range(1, n + 1):
                 above = _row_interp_inside(hp, start - 1, float(c) - s * t)
                 below = _row_interp_inside(hp, stop, float(c) + s * (n + 1 - t))
-                val = float(above) + float(np.float32(below - above)) * (t / den)
-                if rint:
-                    val = np.rint(val)
-                out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+                out[start + t - 1, c] = _blend(above, below, t / den, rint, hp[start + t - 1, c])
             continue
         for t in range(1, n + 1):
             above = _row_interp(hp, start - 1, float(c) - s * t)
             below = _row_interp(hp, stop, float(c) + s * (n + 1 - t))
-            val = float(above) + float(np.float32(below - above)) * (t / den)
-            if rint:
-                val = np.rint(val)
-            out[start + t - 1, c] = min(val, float(hp[start + t - 1, c]))
+            out[start + t - 1, c] = _blend(above, below, t / den, rint, hp[start + t - 1, c])
+
+
+@njit(cache=True, inline="always")
+def _blend(above, below, frac, rint, here):
+    """A refilled dot pixel of :func:`_fill_runs`: ``above`` + (``below`` - ``above``) (in
+    float32) times ``frac``, rounded where ``rint``, and no brighter than the pixel ``here``."""
+    val = float(above) + float(np.float32(below - above)) * frac
+    if rint:
+        val = np.rint(val)
+    return min(val, float(here))
 
 
 def dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
