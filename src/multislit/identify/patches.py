@@ -186,61 +186,96 @@ def _lerp(a, b, t):
 
 
 @njit(cache=True)
-def _remap_kernel(image, centres, row_shift, row_rise, col_scale, half_w, half_h, out):
-    """The patches of :func:`_remap_patches` into ``out`` (M, ph, pw) float32.
+def _remap_edge_pixel(image, x, y0, ay):
+    """One pixel of :func:`_remap_kernel` near the image's edge: image rows ``y0``, ``y0 + 1``
+    blended by ``ay``, at column ``x`` (float32, px); 0 outside the image or where ``x`` is not
+    finite."""
+    h, w = image.shape
+    zero = np.float32(0.0)
+    if not np.isfinite(x):
+        return zero
+    xf = np.floor(x)
+    ax = x - xf
+    x0 = int(xf)
+    c0, c1 = 0 <= x0 < w, 0 <= x0 + 1 < w
+    q0, q1 = 0 <= y0 < h, 0 <= y0 + 1 < h
+    p00 = image[y0, x0] if q0 and c0 else zero
+    p01 = image[y0, x0 + 1] if q0 and c1 else zero
+    p10 = image[y0 + 1, x0] if q1 and c0 else zero
+    p11 = image[y0 + 1, x0 + 1] if q1 and c1 else zero
+    return _lerp(_lerp(p00, p01, ax), _lerp(p10, p11, ax), ay)
+
+
+@njit(cache=True)
+def _remap_kernel(image, centres, row_shift, row_rise, col_scale, half_w, half_h, out, columns):
+    """The patches of :func:`_remap_patches` into the C-contiguous ``out``: (M, pw, ph)
+    float32, column by column, if ``columns``, else (M, ph, pw) row by row.
 
     Column i, row j of patch m samples x = float32(u_m) + float32(col_scale_m (i - half_w)) +
     float32(row_shift[m, j]), y = float32(v_m) + (j - half_h) + float32(row_rise[m, j]) (float32
     sums in that order), bilinearly as ``cv2.remap`` (``INTER_LINEAR``, ``BORDER_CONSTANT`` 0)
     does: along x, then y, each blend a fused multiply-add; 0 at non-finite positions.
+    A patch whose pixel cells all lie inside the image is sampled row by row without checks
+    (its x floors first, a vectorisable pass; unsigned indices, so no wraparound tests).
     """
     h, w = image.shape
-    ph, pw = out.shape[1], out.shape[2]
+    ph, pw = 2 * half_h + 1, 2 * half_w + 1
     zero = np.float32(0.0)
-    xs = np.empty(pw, np.float32)
+    one = np.uintp(1)
+    xs = np.empty(pw, np.float32)  # the patch's column positions before the row shift, px
+    ax = np.empty(pw, np.float32)  # one row's x fractions and whole columns
+    x0 = np.empty(pw, np.int32)
+    sx = np.empty(ph, np.float32)  # per row: shift, y fraction, whole row, finite y
+    ay = np.empty(ph, np.float32)
+    y0 = np.empty(ph, np.intp)
+    finite = np.empty(ph, np.bool_)
     for m in range(centres.shape[0]):
         u = np.float32(centres[m, 0])
         v = np.float32(centres[m, 1])
         for i in range(pw):
             xs[i] = u + np.float32(col_scale[m] * np.float32(i - half_w))
+        inside = True
         for j in range(ph):
-            sx = np.float32(row_shift[m, j])
+            sx[j] = np.float32(row_shift[m, j])
             y = (v + np.float32(j - half_h)) + np.float32(row_rise[m, j])
-            o = out[m, j]
-            x_lo = xs[0] + sx
-            x_hi = xs[pw - 1] + sx
-            if not np.isfinite(y):
-                o[:] = zero
+            finite[j] = np.isfinite(y)
+            if not finite[j]:
+                inside = False
                 continue
             yf = np.floor(y)
-            ay = y - yf
-            y0 = int(yf)
-            if 0 <= y0 < h - 1 and min(x_lo, x_hi) >= 0 and max(x_lo, x_hi) < w - 1:
-                r0 = image[y0]
-                r1 = image[y0 + 1]
+            ay[j] = y - yf
+            y0[j] = int(yf)
+            x_lo = xs[0] + sx[j]
+            x_hi = xs[pw - 1] + sx[j]
+            if not (0 <= y0[j] < h - 1 and min(x_lo, x_hi) >= 0 and max(x_lo, x_hi) < w - 1):
+                inside = False
+        o = out[m]
+        if not inside:  # at the image's edge: 0 outside
+            for j in range(ph):
                 for i in range(pw):
-                    x = xs[i] + sx
-                    xf = np.floor(x)
-                    ax = x - xf
-                    x0 = int(xf)
-                    t = _lerp(r0[x0], r0[x0 + 1], ax)
-                    o[i] = _lerp(t, _lerp(r1[x0], r1[x0 + 1], ax), ay)
-                continue
-            for i in range(pw):  # at the image's edge: 0 outside
-                x = xs[i] + sx
-                if not np.isfinite(x):
-                    o[i] = zero
-                    continue
+                    p = _remap_edge_pixel(image, xs[i] + sx[j], y0[j], ay[j]) if finite[j] else zero
+                    if columns:
+                        o[i, j] = p
+                    else:
+                        o[j, i] = p
+            continue
+        for j in range(ph):
+            for i in range(pw):
+                x = xs[i] + sx[j]
                 xf = np.floor(x)
-                ax = x - xf
-                x0 = int(xf)
-                c0, c1 = 0 <= x0 < w, 0 <= x0 + 1 < w
-                q0, q1 = 0 <= y0 < h, 0 <= y0 + 1 < h
-                p00 = image[y0, x0] if q0 and c0 else zero
-                p01 = image[y0, x0 + 1] if q0 and c1 else zero
-                p10 = image[y0 + 1, x0] if q1 and c0 else zero
-                p11 = image[y0 + 1, x0 + 1] if q1 and c1 else zero
-                o[i] = _lerp(_lerp(p00, p01, ax), _lerp(p10, p11, ax), ay)
+                ax[i] = x - xf
+                x0[i] = np.int32(xf)
+            r0 = image[y0[j]]
+            r1 = image[y0[j] + 1]
+            wy = ay[j]
+            for i in range(pw):
+                c = np.uintp(x0[i])
+                t = _lerp(r0[c], r0[c + one], ax[i])
+                p = _lerp(t, _lerp(r1[c], r1[c + one], ax[i]), wy)
+                if columns:
+                    o[i, j] = p
+                else:
+                    o[j, i] = p
 
 
 def _remap_patches(
@@ -260,9 +295,8 @@ def _remap_patches(
     m = len(centres)
     ph, pw = 2 * half_h + 1, 2 * half_w + 1
     zeros = np.broadcast_to(np.zeros(1), (m, ph))
-    out = np.empty((m, ph, pw), np.float32)
-    if ph > pw:  # tall patches are laid out column by column, as bilinear_ncc reads them
-        out = np.empty((m, pw, ph), np.float32).transpose(0, 2, 1)
+    columns = ph > pw  # tall patches are laid out column by column, as bilinear_ncc reads them
+    out = np.empty((m, pw, ph) if columns else (m, ph, pw), np.float32)
     _remap_kernel(
         np.ascontiguousarray(image, np.float32),
         np.asarray(centres, np.float64),
@@ -272,8 +306,9 @@ def _remap_patches(
         half_w,
         half_h,
         out,
+        columns,
     )
-    return out
+    return out.transpose(0, 2, 1) if columns else out
 
 
 def sample_sheared_patches(
@@ -360,7 +395,7 @@ def window_sums(
 
     Parameters
     ----------
-    image : (H, W) float32
+    image : (H, W) float32 (other types are converted to float32 first)
     half_w, half_h : patch half sizes, px
     x_major : return the sums with the image axes swapped, (W', H', 6), so that the sums of
         windows down a column lie close together in memory (as
