@@ -8,6 +8,7 @@ import pytest
 
 from multislit.stripes.openings import (
     FOLLOW_ANGLES_DEG,
+    _follow_lines,
     follow_stripe_opening,
     line_kernel,
     stripe_opening,
@@ -75,3 +76,20 @@ def test_stripe_opening_cells_limit_where_it_follows_stripes():
     )
     with pytest.raises(ValueError, match="cells must have the lean map's shape"):
         stripe_opening(hp, 7, 5.0, cells=np.ones((3, 3), bool))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_follow_lines_round_angles_as_numpy(rng, dtype):
+    ang = rng.uniform(-100, 100, (23, 31)).astype(dtype)
+    ang.flat[:40] = np.arange(-97.5, 200.0, 7.5)[:40]  # half steps: rounded half to even
+    ang.flat[rng.integers(0, ang.size, 30)] = np.nan
+    line, leaning = _follow_lines(ang)
+    step = FOLLOW_ANGLES_DEG[1] - FOLLOW_ANGLES_DEG[0]
+    mid = len(FOLLOW_ANGLES_DEG) // 2
+    want = np.rint(np.nan_to_num(ang.astype(np.float64)) / step).astype(np.int64) + mid
+    want = np.clip(want, 0, len(FOLLOW_ANGLES_DEG) - 1)
+    want[want == mid] = -1
+    assert np.array_equal(line, want) and leaning
+    assert np.all(line[np.isnan(ang)] == -1) and line.flat[1] == 0  # -90 deg: the outermost
+    none, leaning = _follow_lines(np.where(np.abs(ang) < 7.5, ang, np.nan))
+    assert not leaning and np.all(none == -1)

@@ -101,6 +101,32 @@ def _follow_offsets(length: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
 
 
 @njit(cache=True)
+def _follow_lines(angles):
+    """The line each cell is opened along: ``angles`` (H // D, W // D) float32 or float64,
+    deg, rounded (half to even) to the nearest of :data:`FOLLOW_ANGLES_DEG` (beyond them, the
+    outermost); (H // D, W // D) int64 its index, -1 where that is upright or the angle is NaN;
+    and whether any cell leans."""
+    step = FOLLOW_ANGLES_DEG[1] - FOLLOW_ANGLES_DEG[0]
+    last = len(FOLLOW_ANGLES_DEG) - 1
+    mid = last // 2
+    line = np.empty(angles.shape, np.int64)
+    leaning = False
+    for r in range(angles.shape[0]):
+        for c in range(angles.shape[1]):
+            a = np.float64(angles[r, c])
+            k = mid
+            if not np.isnan(a):
+                q = np.rint(a / step) + mid
+                k = 0 if q < 0 else (last if q > last else int(q))
+            if k == mid:
+                line[r, c] = -1
+            else:
+                line[r, c] = k
+                leaning = True
+    return line, leaning
+
+
+@njit(cache=True)
 def _follow_cells(hp, opened, line, f, offs, count, tau):
     """:func:`follow_stripe_opening` on the cells with a line (``line`` (H // f, W // f) int64,
     the index into ``offs``, -1: upright): at each of their pixels where ``opened`` lies below
@@ -166,13 +192,14 @@ def follow_stripe_opening(
     decimation : int, D, px
     tau : float, intensity units, the dot threshold above the opening
     """
-    ang = np.nan_to_num(np.asarray(angles, np.float64), nan=0.0)
-    step = FOLLOW_ANGLES_DEG[1] - FOLLOW_ANGLES_DEG[0]
-    mid = len(FOLLOW_ANGLES_DEG) // 2
-    line = np.clip(np.rint(ang / step).astype(np.int64) + mid, 0, len(FOLLOW_ANGLES_DEG) - 1)
-    if length <= 1 or not (line != mid).any():
+    ang = np.asarray(angles)
+    if ang.dtype != np.float32:
+        ang = ang.astype(np.float64)
+    if length <= 1:
         return
-    line[line == mid] = -1
+    line, leaning = _follow_lines(np.ascontiguousarray(ang))
+    if not leaning:
+        return
     offs, count = _follow_offsets(int(length))
     _follow_cells(hp, opened, line, int(decimation), offs, count, float(tau))
 
