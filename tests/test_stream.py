@@ -418,6 +418,22 @@ def test_dask_local_cluster_equals_serial(calibrated, frames_dir, serial_out, tm
 
 
 @pytest.mark.slow
+def test_dask_frames_alike_all_scanned(calibrated, tmp_path):
+    """Equal frames (a static or dark scene) each keep their own data on the cluster: one
+    finished frame does not release what a later, equal one still needs."""
+    from multislit.app.batch import batch
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    dark = np.zeros(cv2.imread(str(calibrated / "scans" / "holes.png"), 0).shape, np.uint8)
+    for i in range(60):
+        cv2.imwrite(str(frames / f"f{i:03d}.png"), dark)
+    s = batch(calibrated, frames, tmp_path / "out", workers=2)
+    assert s.frames == 60
+    assert [d["frame"] for d in _index(tmp_path / "out")] == list(range(60))
+
+
+@pytest.mark.slow
 def test_lossless_video_gives_the_same_points(calibrated, frames_dir, serial_out, tmp_path):
     imgs = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in sorted(frames_dir.glob("*.png"))]
     h, w = imgs[0].shape

@@ -76,7 +76,9 @@ class DaskRunner:
         self._cal = client.scatter(calibration, broadcast=True)
 
     def submit(self, image: NDArray, name: str) -> Any:
-        img = self.client.scatter(image)
+        # hash=False: frames alike (a static or dark scene) get keys of their own; with content
+        # keys one finished frame releases the data that a later, equal one still needs
+        img = self.client.scatter(image, hash=False)
         return self.client.submit(scan_frame, img, self._ref, self._cal, name=name, pure=False)
 
     def done(self, handle: Any) -> bool:
