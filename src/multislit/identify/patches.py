@@ -831,7 +831,6 @@ def compile_kernels() -> None:
     stack = np.zeros((1, 16, 16), np.float32)
     for hw, hh in ((2, 3), (3, 2)):
         sums = window_sums(stack[0], hw, hh, x_major=True)[None]
-        window_sums(stack[0], hw, hh)
         t = np.zeros((1, (2 * hw + 1) * (2 * hh + 1)), np.float32)
         bilinear_ncc(
             stack, t, np.zeros((1, 1), np.intp), np.ones((1, 1)), np.ones((1, 1)), sums, hw, hh
