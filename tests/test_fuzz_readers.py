@@ -1,18 +1,17 @@
-"""Fuzz tests of the three file readers: rig.json / target.json (``Capture.open``), the
-calibration file (``Calibration.load``) and PLY files (``read_ply``).
+"""Fuzz tests of the file readers: rig.json / target.json (``Capture.open``), the calibration
+file (``Calibration.load``), PLY files (``read_ply``) and the index of an OUT folder
+(``frames.jsonl``, :func:`multislit.app.index.read_index`).
 
-A seeded generator damages valid files (truncation, byte flips, non-UTF-8 bytes, repeated or
-cut spans, JSON values of the wrong type, ASCII PLY values out of range). Each reader must
-either give a correct result or raise a one-line ``MultislitError``: never another exception
-and never a warning.
+Hypothesis damages valid files (truncation, changed bytes, non-UTF-8 bytes, repeated or cut
+spans, JSON values of any type in place of the file's, ASCII PLY values out of range) and
+shrinks a failure to its smallest case. Each reader must either give a correct result or
+raise a one-line ``MultislitError``: never another exception and never a warning.
 """
 
 from __future__ import annotations
 
-import copy
 import json
 import math
-import shutil
 import traceback
 import warnings
 from collections.abc import Callable
@@ -20,80 +19,62 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from multislit.app.index import read_index
+from multislit.app.stream import FrameResult, FrameWriter
 from multislit.calibrate import Calibration
 from multislit.errors import MultislitError
 from multislit.io import Capture, read_ply, write_ply
 from tests.test_calibration import _calibration
 
-#: Values that replace a JSON value: every JSON type, edge numbers, nesting.
-_ODD_VALUES: list = [
-    None,
-    True,
-    False,
-    0,
-    -1,
-    7,
-    0.5,
-    1e300,
-    -1e300,
-    float("nan"),
-    float("inf"),
-    2**70,
-    "",
-    "x",
-    "1e3",
-    "\udc80",
-    [],
-    {},
-    [1, 2],
-    [[1]],
-    [None, None, None, None],
-    {"a": 1},
-    [[[[[[[[1]]]]]]]],
-]
+#: JSON values of every type, edge numbers and nesting: what replaces a value of a file.
+_JSON = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**70), max_value=2**70)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=8)
+    | st.sampled_from(["", "1e3", "\udc80", "x"]),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=3)
+    ),
+    max_leaves=12,
+)
 
 #: Tokens that replace a value of an ASCII PLY.
-_ODD_TOKENS = [b"1e300", b"-1e39", b"nan", b"inf", b"-1", b"2.5", b"99999999999", b"x", b""]
+_PLY_TOKENS = st.sampled_from(
+    [b"1e300", b"-1e39", b"nan", b"inf", b"-1", b"2.5", b"99999999999", b"x", b""]
+) | st.binary(max_size=6)
 
 #: Byte sequences that are not UTF-8.
-_NOT_UTF8 = [b"\xff", b"\xfe", b"\xc3", b"\x80", b"\xed\xa0\x80", b"\xc0\xaf"]
+_NOT_UTF8 = st.sampled_from([b"\xff", b"\xfe", b"\xc3", b"\x80", b"\xed\xa0\x80", b"\xc0\xaf"])
 
 
-def _mutate_bytes(rng: np.random.Generator, data: bytes) -> bytes:
-    """``data`` damaged one of five ways."""
-    b = bytearray(data)
-    kind = int(rng.integers(5))
-    if kind == 0:  # truncated
-        return bytes(b[: int(rng.integers(len(b)))])
-    if kind == 1:  # bytes flipped
-        for _ in range(int(rng.integers(1, 6))):
-            b[int(rng.integers(len(b)))] = int(rng.integers(256))
+@st.composite
+def damaged_bytes(draw: st.DrawFn, data: bytes) -> bytes:
+    """``data`` damaged one of five ways: truncated, bytes changed, non-UTF-8 bytes inserted,
+    a span repeated or a span cut out."""
+    n = len(data)
+    kind = draw(st.sampled_from(["truncate", "change", "insert", "repeat", "cut"]))
+    if kind == "truncate":
+        return data[: draw(st.integers(0, n - 1))]
+    if kind == "change":
+        b = bytearray(data)
+        for i, x in draw(
+            st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, 255)), min_size=1, max_size=5)
+        ):
+            b[i] = x
         return bytes(b)
-    i = int(rng.integers(len(b) + 1))
-    if kind == 2:  # non-UTF-8 bytes inserted
-        return bytes(b[:i]) + _NOT_UTF8[int(rng.integers(len(_NOT_UTF8)))] + bytes(b[i:])
-    if kind == 3:  # a span repeated
-        return bytes(b[:i]) + bytes(b[i : i + int(rng.integers(1, 40))]) * 2 + bytes(b[i:])
-    j = int(rng.integers(i, len(b) + 1))  # a span cut out
-    return bytes(b[:i]) + bytes(b[j:])
-
-
-def _mutate_json(rng: np.random.Generator, data: bytes) -> bytes:
-    """``data`` (JSON) with 1-3 values replaced by values of other types, or keys deleted."""
-    obj = json.loads(data)
-    for _ in range(int(rng.integers(1, 4))):
-        slots: list[tuple[object, object]] = []
-        _slots(obj, None, None, slots)
-        parent, key = slots[int(rng.integers(len(slots)))]
-        value = copy.deepcopy(_ODD_VALUES[int(rng.integers(len(_ODD_VALUES)))])
-        if parent is None:
-            obj = value
-        elif isinstance(parent, dict) and rng.random() < 0.2:
-            del parent[key]
-        else:
-            parent[key] = value  # type: ignore[index]
-    return json.dumps(obj).encode("utf-8", "surrogatepass")
+    i = draw(st.integers(0, n))
+    if kind == "insert":
+        return data[:i] + draw(_NOT_UTF8 | st.binary(min_size=1, max_size=4)) + data[i:]
+    if kind == "repeat":
+        j = min(n, i + draw(st.integers(1, 40)))
+        return data[:i] + data[i:j] * 2 + data[i:]
+    j = draw(st.integers(i, n))
+    return data[:i] + data[j:]
 
 
 def _slots(o: object, parent: object, key: object, out: list[tuple[object, object]]) -> None:
@@ -107,12 +88,30 @@ def _slots(o: object, parent: object, key: object, out: list[tuple[object, objec
             _slots(v, o, k, out)
 
 
-def _mutate_ply_values(rng: np.random.Generator, data: bytes) -> bytes:
+@st.composite
+def damaged_json(draw: st.DrawFn, data: bytes) -> bytes:
+    """JSON ``data`` with 1-3 values replaced by values of any type, or keys deleted."""
+    obj = json.loads(data)
+    for _ in range(draw(st.integers(1, 3))):
+        slots: list[tuple[object, object]] = []
+        _slots(obj, None, None, slots)
+        parent, key = draw(st.sampled_from(slots))
+        if parent is None:
+            obj = draw(_JSON)
+        elif isinstance(parent, dict) and draw(st.booleans()) and draw(st.booleans()):
+            del parent[key]
+        else:
+            parent[key] = draw(_JSON)  # type: ignore[index]
+    return json.dumps(obj).encode("utf-8", "surrogatepass")
+
+
+@st.composite
+def damaged_ply_values(draw: st.DrawFn, data: bytes) -> bytes:
     """An ASCII PLY with a few values replaced by odd tokens."""
     head, sep, body = data.partition(b"end_header\n")
     tokens = body.split(b" ")
-    for _ in range(int(rng.integers(1, 4))):
-        tokens[int(rng.integers(len(tokens)))] = _ODD_TOKENS[int(rng.integers(len(_ODD_TOKENS)))]
+    for _ in range(draw(st.integers(1, 3))):
+        tokens[draw(st.integers(0, len(tokens) - 1))] = draw(_PLY_TOKENS)
     return head + sep + b" ".join(tokens)
 
 
@@ -139,7 +138,8 @@ def _outcome(read: Callable[[], object], check: Callable[[object], None]) -> str
 # --------------------------------------------------------------------------- the readers
 @pytest.fixture(scope="module")
 def originals(small_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, bytes]:
-    """Valid files to damage: rig.json, target.json, a calibration, binary and ASCII PLY."""
+    """Valid files to damage: rig.json, target.json, a calibration, binary and ASCII PLY, an
+    OUT folder's index."""
     tmp = tmp_path_factory.mktemp("fuzz_originals")
     rng = np.random.default_rng(3)
     n = 40
@@ -152,13 +152,31 @@ def originals(small_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     pts = rng.normal(0, 100, (n, 3))
     write_ply(tmp / "b.ply", pts, **cols)
     write_ply(tmp / "a.ply", pts, **cols, binary=False)
+    w = FrameWriter(tmp / "out")
+    for i, k in enumerate((3, 0, 5)):
+        res = FrameResult(pts[:k], pts[:k, 0], pts[:k, 1], np.zeros(k, np.int64),
+                          np.ones(k), 1, 12.5, "" if k else "no slits found in the image")  # fmt: skip
+        w.write(f"img{i}.png", res)
+    w.close()
     return {
         "rig": (small_capture / "rig.json").read_bytes(),
         "target": (small_capture / "target.json").read_bytes(),
         "calibration": _calibration().to_json().encode(),
         "binary_ply": (tmp / "b.ply").read_bytes(),
         "ascii_ply": (tmp / "a.ply").read_bytes(),
+        "index": (tmp / "out" / "frames.jsonl").read_bytes(),
     }
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder for the damaged files, with a capture folder's reference images (listed by
+    ``Capture.open``, not read)."""
+    tmp = tmp_path_factory.mktemp("fuzz")
+    (tmp / "cap" / "reference").mkdir(parents=True)
+    for name in ("a.png", "b.png"):
+        (tmp / "cap" / "reference" / name).write_bytes(b"")
+    return tmp
 
 
 def _check_capture(cap: object) -> None:
@@ -189,70 +207,90 @@ def _check_ply(d: object) -> None:
     assert len({len(v) for v in d.values()}) == 1, {k: len(v) for k, v in d.items()}
 
 
-def _fuzz(originals: dict[str, bytes], tmp: Path, seed: int, cases: int) -> list[str]:
-    """Run ``cases`` damaged files through each reader; the failures, one line each."""
-    rng = np.random.default_rng(seed)
-    cap = tmp / "cap"
-    (cap / "reference").mkdir(parents=True)
-    for name in ("a.png", "b.png"):  # Capture.open lists the reference images, not reads
-        (cap / "reference" / name).write_bytes(b"")
-    cal, ply = tmp / "calibration.json", tmp / "points.ply"
-    failures = []
-
-    def damaged(key: str) -> bytes:
-        data = originals[key]
-        if key.endswith("ply"):
-            if key == "ascii_ply" and rng.random() < 0.4:
-                return _mutate_ply_values(rng, data)
-            return _mutate_bytes(rng, data)
-        return _mutate_json(rng, data) if rng.random() < 0.5 else _mutate_bytes(rng, data)
-
-    for case in range(cases):
-        for key in ("rig", "target", "calibration", "binary_ply", "ascii_ply"):
-            data = damaged(key)
-            if key in ("rig", "target"):
-                (cap / "rig.json").write_bytes(data if key == "rig" else originals["rig"])
-                (cap / "target.json").write_bytes(data if key == "target" else originals["target"])
-                why = _outcome(lambda: Capture.open(cap), _check_capture)
-            elif key == "calibration":
-                cal.write_bytes(data)
-                why = _outcome(lambda: Calibration.load(cal), _check_calibration)
-            else:
-                ply.write_bytes(data)
-                why = _outcome(lambda: read_ply(ply), _check_ply)
-            if why:
-                failures.append(f"seed {seed} case {case} {key}: {why}")
-    return failures
+def _check_index(lines: object) -> None:
+    assert isinstance(lines, list)
+    for d in lines:
+        assert isinstance(d, dict)
+        assert isinstance(d["frame"], int) and not isinstance(d["frame"], bool)
+        assert d["frame"] >= 0 and isinstance(d["source"], str)
 
 
-def test_originals_are_read(originals, tmp_path):
+#: The readers fuzzed, by the original file they read.
+READERS = ("rig", "target", "calibration", "binary_ply", "ascii_ply", "index")
+
+
+def _damaged(key: str, data: bytes) -> st.SearchStrategy[bytes]:
+    """How the file ``key`` is damaged: its bytes, and its values by their own syntax."""
+    if key == "ascii_ply":
+        return damaged_bytes(data) | damaged_ply_values(data)
+    if key == "binary_ply":
+        return damaged_bytes(data)
+    if key == "index":
+        lines = data.splitlines(keepends=True)
+        return damaged_bytes(data) | st.builds(
+            lambda i, line: b"".join(lines[:i]) + line + b"".join(lines[i + 1 :]),
+            st.integers(0, len(lines) - 1),
+            damaged_json(lines[0]).map(lambda b: b + b"\n"),
+        )
+    return damaged_bytes(data) | damaged_json(data)
+
+
+def _read(key: str, data: bytes, originals: dict[str, bytes], tmp: Path) -> str | None:
+    """None if the reader of ``key`` reads ``data`` right or refuses it in one line; else
+    what went wrong."""
+    if key in ("rig", "target"):
+        cap = tmp / "cap"
+        (cap / "rig.json").write_bytes(data if key == "rig" else originals["rig"])
+        (cap / "target.json").write_bytes(data if key == "target" else originals["target"])
+        return _outcome(lambda: Capture.open(cap), _check_capture)
+    if key == "calibration":
+        (tmp / "calibration.json").write_bytes(data)
+        return _outcome(lambda: Calibration.load(tmp / "calibration.json"), _check_calibration)
+    if key == "index":
+        (tmp / "frames.jsonl").write_bytes(data)
+        return _outcome(lambda: read_index(tmp / "frames.jsonl"), _check_index)
+    (tmp / "points.ply").write_bytes(data)
+    return _outcome(lambda: read_ply(tmp / "points.ply"), _check_ply)
+
+
+_FUZZ = settings(
+    deadline=None,
+    derandomize=True,  # the same cases on every run: the suite stays deterministic
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+
+
+def _fuzz_one(originals: dict[str, bytes], workdir: Path, key: str, data: st.DataObject) -> None:
+    """One damaged file through the reader of ``key``."""
+    damaged = data.draw(_damaged(key, originals[key]), label="file")
+    why = _read(key, damaged, originals, workdir)
+    assert why is None, why
+
+
+def test_originals_are_read(originals, workdir):
     """The undamaged files give correct results (so the fuzzing starts from valid input)."""
-    assert _fuzz(originals, tmp_path, seed=0, cases=0) == []
-    cap = tmp_path / "cap"
-    (cap / "rig.json").write_bytes(originals["rig"])
-    (cap / "target.json").write_bytes(originals["target"])
-    _check_capture(Capture.open(cap))
-    (tmp_path / "c.json").write_bytes(originals["calibration"])
-    _check_calibration(Calibration.load(tmp_path / "c.json"))
-    for key in ("binary_ply", "ascii_ply"):
-        (tmp_path / "p.ply").write_bytes(originals[key])
-        assert len(read_ply(tmp_path / "p.ply")["x"]) == 40
+    for key in READERS:
+        assert _read(key, originals[key], originals, workdir) is None, key
+    assert len(read_ply(workdir / "points.ply")["x"]) == 40
+    assert [d["points"] for d in read_index(workdir / "frames.jsonl")] == [3, 0, 5]
 
 
-def test_fuzz_readers_quick(originals, tmp_path):
-    """60 damaged files per reader: 300 reads, 1-3 s."""
-    failures = _fuzz(originals, tmp_path, seed=1, cases=60)
-    assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures[:20])
+@pytest.mark.parametrize("key", READERS)
+@settings(_FUZZ, max_examples=60)
+@given(data=st.data())
+def test_fuzz_readers_quick(originals, workdir, key, data):
+    """60 damaged files per reader."""
+    _fuzz_one(originals, workdir, key, data)
 
 
 @pytest.mark.slow
-def test_fuzz_readers_long(originals, tmp_path):
-    """600 damaged files per reader (3000 reads), other seeds."""
-    failures = []
-    for seed in range(2, 4):
-        shutil.rmtree(tmp_path / "cap", ignore_errors=True)
-        failures += _fuzz(originals, tmp_path, seed=seed, cases=300)
-    assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures[:20])
+@pytest.mark.parametrize("key", READERS)
+@settings(_FUZZ, max_examples=600)
+@given(data=st.data())
+def test_fuzz_readers_long(originals, workdir, key, data):
+    """600 damaged files per reader, other cases."""
+    _fuzz_one(originals, workdir, key, data)
 
 
 @pytest.mark.parametrize(

@@ -127,3 +127,25 @@ def test_headless_chromium_draws_the_cloud(tmp_path: Path):
         shots[name] = _coloured_pixels(shot)
     assert shots["cloud"] > 2000, shots
     assert shots["empty"] < 50, shots
+
+
+def test_index_that_is_not_utf8_is_one_line(tmp_path: Path, capsys):
+    out = _out_folder(tmp_path, frames=1, n=50)
+    (out / "frames.jsonl").write_bytes(b'{"frame": 0, "source": "caf\xe9.png"}\n')
+    code = main(["view", str(out), "-o", str(tmp_path / "v.html")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "frames.jsonl line 1 is not UTF-8 text" in err
+
+
+def test_points_with_nan_are_left_out_of_the_colour_range(tmp_path: Path):
+    ply = tmp_path / "nan.ply"
+    rows = ["1 2 3 0", "4 5 -6 1", "nan 1 2 1", "1 2 nan 2", "1 inf 1 2", "7 8 9 2"]
+    head = "ply\nformat ascii 1.0\nelement vertex 6\n"
+    head += "".join(f"property float {k}\n" for k in "xyz") + "property int slit\nend_header\n"
+    ply.write_text(head + "\n".join(rows) + "\n")
+    html = write_view(ply, tmp_path / "nan.html").read_text()
+    cmin = re.findall(r'"cmin":([^,}]+)', html)
+    cmax = re.findall(r'"cmax":([^,}]+)', html)
+    assert cmin and cmax and "null" not in cmin + cmax, (cmin, cmax)
+    assert "-6.0" in cmin and "9.0" in cmax  # the finite points' depth range

@@ -13,9 +13,14 @@ a cluster of your own scan about twice as fast when started without Dask's defau
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
-from collections.abc import Callable
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import Any
 
 from numpy.typing import NDArray
@@ -30,9 +35,10 @@ from multislit.app.stream import (
     run_frames,
     scan_frame,
 )
-from multislit.errors import MeasurementError
+from multislit.errors import CaptureError, MeasurementError
 from multislit.identify import capture_reference
 from multislit.io import Capture
+from multislit.io.paths import as_path
 from multislit.io.sources import open_source
 from multislit.reconstruct import load_capture_calibration
 
@@ -51,6 +57,85 @@ def _dask():
             "multislit batch needs dask.distributed: pip install 'multislit[dask]'"
         ) from None
     return distributed
+
+
+#: Address schemes of Dask's communication layer.
+_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
+
+
+def check_address(address: object) -> str:
+    """``address`` if it is a Dask scheduler address (``[SCHEME://]HOST:PORT``); else a
+    :class:`~multislit.errors.MeasurementError` naming ``--dask`` and the problem."""
+    example = "e.g. tcp://192.168.1.10:8786"
+    if not isinstance(address, str) or not address.strip():
+        raise MeasurementError(f"--dask {address!r}: give the scheduler's address, {example}")
+    scheme, sep, location = address.partition("://")
+    if not sep:
+        scheme, location = "tcp", address
+    if scheme not in _SCHEMES:
+        raise MeasurementError(
+            f"--dask {address}: unknown scheme {scheme!r} (one of {', '.join(_SCHEMES)}); {example}"
+        )
+    if scheme == "inproc":
+        return address
+    host, colon, port = location.rpartition(":")
+    host = host.strip("[]")  # an IPv6 address: [::1]:8786
+    if (
+        not colon
+        or not host
+        or not (port.isascii() and port.isdigit())
+        or not 0 < int(port) < 65536
+    ):
+        raise MeasurementError(
+            f"--dask {address}: give the host and a port number 1-65535 as HOST:PORT; {example}"
+        )
+    return address
+
+
+async def _identity(address: str, timeout: float) -> Any:
+    """The scheduler's answer to an 'identity' message, within ``timeout`` s in all."""
+    from distributed.comm import connect
+
+    async def ask() -> Any:
+        comm = await connect(address, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    return await asyncio.wait_for(ask(), timeout)
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Raise a one-line MeasurementError unless a Dask scheduler answers at ``address`` within
+    ``timeout`` s (a Dask client alone waits for ever on a server that accepts the connection
+    and never answers)."""
+    with ThreadPoolExecutor(1) as pool:  # its own event loop, whatever runs in this thread
+        try:
+            reply = pool.submit(asyncio.run, _identity(address, timeout)).result()
+        except TimeoutError:
+            reply = f"no answer in {timeout:g} s"
+        except Exception as exc:  # noqa: BLE001 - any failure to talk is the one message
+            reply = str(exc) or type(exc).__name__
+    if isinstance(reply, dict) and reply.get("type") == "Scheduler":
+        return
+    why = reply if isinstance(reply, str) else "the server there is not a Dask scheduler"
+    raise MeasurementError(f"--dask {address}: cannot reach the Dask scheduler ({why})")
+
+
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Ctrl-C ignored while the local cluster's processes start: they inherit it, so a Ctrl-C
+    reaches only this process, which then closes the cluster (no worker tracebacks)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def _one_thread() -> None:
@@ -127,16 +212,21 @@ def batch(
         As :func:`~multislit.app.stream.stream`; a scheduler that cannot be reached; no Dask.
     """
     check_frame_options(workers, every, max_frames, on_bad_frame)
+    if address is not None:
+        check_address(address)
+    as_path(source, "SOURCE", error=CaptureError)
+    writer = FrameWriter(out, overwrite=overwrite)
     distributed = _dask()
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)
     src = open_source(source, channel=laser_channel(cap, channel), every=every)
-    writer = cluster = client = None
+    cluster = client = None
     try:
-        if address:
+        if address is not None:
+            _probe(address, _CONNECT_TIMEOUT_S)
             try:
                 client = distributed.Client(address, timeout=_CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError) as exc:
+            except (OSError, TimeoutError, ValueError) as exc:
                 raise MeasurementError(
                     f"--dask {address}: cannot reach the Dask scheduler ({exc})"
                 ) from None
@@ -146,7 +236,7 @@ def batch(
             # Dask sets MALLOC_TRIM_THRESHOLD_=65536 in its worker processes by default: glibc
             # then returns every large array's memory at once and scans run about twice as
             # slowly; the workers of this cluster keep glibc's own setting.
-            with dask.config.set({_TRIM_KEY: None}):
+            with dask.config.set({_TRIM_KEY: None}), _sigint_ignored():
                 cluster = distributed.LocalCluster(
                     n_workers=workers,
                     threads_per_worker=1,
@@ -157,7 +247,6 @@ def batch(
             client = distributed.Client(cluster)
             if processes:
                 client.run(_one_thread)  # a core per worker process
-        writer = FrameWriter(out, overwrite=overwrite)
         ref = capture_reference(cap)
         return run_frames(
             src,
@@ -170,8 +259,7 @@ def batch(
         )
     finally:
         src.close()
-        if writer is not None:
-            writer.close()
+        writer.close()
         if client is not None:
             client.close()
         if cluster is not None:

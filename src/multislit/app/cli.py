@@ -6,13 +6,16 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from multislit import __version__
 from multislit.errors import MultislitError
+from multislit.io.paths import as_path, check_output_dir
 
 
 def _progress(prefix: str):
@@ -60,20 +63,6 @@ def _check_sim_size(spec, option: str) -> None:
         )
 
 
-def _check_output_dir(path: Path, option: str) -> None:
-    """Refuse an output folder that is a file or cannot be created (nothing is created here)."""
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise MultislitError(f"{option} {p} is a file, not a folder; give a folder")
-    parent = p
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise MultislitError(f"{option} {p}: cannot create a folder under {parent}, a file")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise MultislitError(f"{option} {p}: cannot write in {parent} (permission denied)")
-
-
 def _refuse_inputs(outputs: Sequence[Path], inputs: Sequence[Path], option: str) -> None:
     """Refuse to write an output over one of the command's input files."""
     seen = {}
@@ -109,7 +98,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from multislit.sim import SCENES, RigSpec, simulate_capture
 
     _check_seed(args.seed)
-    _check_output_dir(Path(args.outdir), "OUTDIR")
+    check_output_dir(args.outdir, "OUTDIR")
     if args.slits is not None and args.slits < 1:
         raise MultislitError(f"--slits must be a positive number of slits, got {args.slits}")
     if not math.isfinite(args.scale):
@@ -157,7 +146,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from multislit.app.demo import run_demo
 
     _check_seed(args.seed)
-    _check_output_dir(Path(args.out), "--out")
+    check_output_dir(args.out, "--out")
     result = run_demo(Path(args.out), seed=args.seed, scale=args.scale, progress=_progress("demo"))
     if args.json:
         print(json.dumps(result, indent=1))
@@ -171,11 +160,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from multislit.calibrate import calibrate_capture, format_report, write_calibration
     from multislit.io import Capture
 
-    capture = Path(args.capture)
-    out = Path(args.output) if args.output else capture / "calibration.json"
+    capture = as_path(args.capture, "CAPTURE")
+    out = as_path(args.output, "-o") if args.output is not None else capture / "calibration.json"
     if out.is_dir():
         raise MultislitError(f"-o {out} is a folder; give the calibration file's name")
-    _check_output_dir(out.parent, "-o")
+    check_output_dir(out.parent, "-o")
     _refuse_inputs([out], _capture_files(Capture.open(capture)), "-o")
     result = calibrate_capture(capture, source=args.source)
     write_calibration(result, out)
@@ -190,16 +179,20 @@ def cmd_scan(args: argparse.Namespace) -> int:
     from multislit.io import Capture
     from multislit.reconstruct import scan_capture
 
+    outdir = check_output_dir(args.output, "-o") if args.output is not None else None
     cap = Capture.open(args.capture, require_target=False)
-    images = [Path(args.image)] if args.image else None
+    images = [as_path(args.image, "--image")] if args.image is not None else None
     if images is None and not cap.scans:
         raise MeasurementError(
             f"no scans in {cap.root / 'scans'} (no *.png images); add scans or use --image FILE"
         )
     n = len(images) if images else len(cap.scans)
-    outdir = Path(args.output) if args.output else cap.root / "points"
-    _check_output_dir(outdir, "-o")
-    cal_file = Path(args.calibration) if args.calibration else cap.root / "calibration.json"
+    outdir = outdir if outdir is not None else check_output_dir(cap.root / "points", "-o")
+    cal_file = (
+        as_path(args.calibration, "--calibration")
+        if args.calibration is not None
+        else cap.root / "calibration.json"
+    )
     outputs = [outdir / f"{p.stem}.ply" for p in (images or cap.scans)]
     _refuse_inputs(outputs, [*_capture_files(cap), *(images or []), cal_file], "-o")
     results = scan_capture(
@@ -228,7 +221,7 @@ def cmd_holes(args: argparse.Namespace) -> int:
     from multislit.errors import MeasurementError
     from multislit.measure import measure_holes
 
-    src = Path(args.source)
+    src = as_path(args.source, "SOURCE")
     measurements = {}
     if src.is_dir():
         from multislit.identify import capture_reference
@@ -237,7 +230,7 @@ def cmd_holes(args: argparse.Namespace) -> int:
 
         cap = Capture.open(src, require_target=False)
         cal = load_capture_calibration(cap, args.calibration)
-        paths = [Path(args.image)] if args.image else list(cap.scans)
+        paths = [as_path(args.image, "--image")] if args.image is not None else list(cap.scans)
         if not paths:
             raise MeasurementError(
                 f"no scans to measure: {cap.root / 'scans'} has no *.png images (or give one image)"
@@ -489,9 +482,37 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``): the command ends like on Ctrl-C, its worker processes and cluster
+    closed and its files left whole."""
+
+
+def _terminated(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
+def _text_streams() -> None:
+    """stdout and stderr write any file name: characters the terminal's encoding lacks (or
+    bytes of a name that is not UTF-8) as backslash escapes instead of an exception."""
+    for stream in (sys.stdout, sys.stderr):
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _text_streams()
+    main_thread = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
+    try:
+        return _run(args)
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args) or 0)
     except MultislitError as exc:
@@ -501,6 +522,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         print(f"multislit {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
+    except _Terminated:
+        print("terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

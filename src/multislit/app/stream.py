@@ -21,8 +21,10 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import re
 import signal
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -35,10 +37,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from multislit.app.index import INDEX_FILE, frame_file
 from multislit.calibrate import Calibration
-from multislit.errors import MeasurementError
+from multislit.errors import CaptureError, MeasurementError, MultislitError
 from multislit.identify import ReferenceSet, capture_reference, prepare_scoring
 from multislit.io import Capture, json_safe, write_ply
+from multislit.io.paths import as_path, check_output_dir
 from multislit.io.sources import FrameSource, open_source
 from multislit.reconstruct import ScanResult, load_capture_calibration, scan_image
 
@@ -54,15 +58,14 @@ __all__ = [
     "frame_file",
 ]
 
-#: The index of an OUT folder.
-INDEX_FILE = "frames.jsonl"
 _PROGRESS_EVERY_S = 5.0  # progress lines when stderr is not a terminal
 _INFLIGHT_PER_WORKER = 2  # frames queued per worker process for files and videos
-
-
-def frame_file(frame: int) -> str:
-    """The PLY file name of output frame ``frame``: ``frame_000000.ply``."""
-    return f"frame_{frame:06d}.ply"
+_PARENT_POLL_S = 0.5  # a worker process checks this often that its parent still runs
+#: Most worker processes per core: more only share the cores and multiply the memory.
+_WORKERS_PER_CORE = 4
+#: s without a usable frame after which a live camera run stops (every frame of the wrong
+#: size or unreadable: a camera set to another size, another camera).
+_LIVE_BAD_FRAMES_S = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,6 +80,7 @@ class FrameResult:
     confidence : (K,) float64, 0..1
     slits : int, distinct slits among the points
     ms : float, ms, time to scan the frame
+    message : str, why the frame gave no points or another note of the scan; '' if none
     """
 
     points: NDArray[np.float64]
@@ -86,6 +90,7 @@ class FrameResult:
     confidence: NDArray[np.float64]
     slits: int
     ms: float
+    message: str = ""
 
 
 def scan_frame(
@@ -115,46 +120,68 @@ def _timed_scan(
 
 
 def _frame_result(res: ScanResult, ms: float) -> FrameResult:
-    return FrameResult(res.points, res.u, res.v, res.slit, res.confidence, res.num_slits_found, ms)
+    return FrameResult(
+        res.points, res.u, res.v, res.slit, res.confidence, res.num_slits_found, ms, res.message
+    )
 
 
 # --------------------------------------------------------------------------- output
 class FrameWriter:
     """Writes frames to an OUT folder: the PLY whole, then its line in ``frames.jsonl``.
 
+    Nothing is written or removed before the first frame: a run that fails before it
+    leaves the folder as it was (no empty index that would then need ``overwrite``).
+
     Parameters
     ----------
-    out : folder (created if needed)
+    out : folder (created at the first frame if needed)
     overwrite : bool
-        Remove the frames and index already in ``out`` first; without it, a folder that holds
-        frames is refused. Default False.
+        Remove the frames and index already in ``out`` (``frame_NNNNNN.ply``, the index and
+        the temporary files of a killed run; no other file) when the first frame is written;
+        without it, a folder that holds frames is refused. Default False.
+
+    Raises
+    ------
+    MeasurementError
+        ``out`` is a file, cannot be created or written, or holds frames (without
+        ``overwrite``).
     """
 
     def __init__(self, out: str | os.PathLike[str], *, overwrite: bool = False) -> None:
-        self.out = Path(out)
-        if self.out.exists() and not self.out.is_dir():
-            raise MeasurementError(f"-o {self.out}: is a file; give a folder for the frames")
-        old = sorted(self.out.glob("frame_*.ply")) if self.out.is_dir() else []
-        if (self.out / INDEX_FILE).exists():
-            old.append(self.out / INDEX_FILE)
+        try:
+            self.out = check_output_dir(out, "-o")
+        except MultislitError as exc:
+            raise MeasurementError(str(exc)) from None
+        old = _frame_files(self.out)
         if old and not overwrite:
             raise MeasurementError(
                 f"-o {self.out}: the folder already holds frames ({old[0].name}, ...); give an "
                 "empty folder or --overwrite"
             )
+        self._old = old
+        self._fd = -1
+        self._closed = False
+        self.frames = 0
+
+    def _open(self) -> None:
+        """Make the folder, remove the old frames (``overwrite``), start the index."""
         try:
             self.out.mkdir(parents=True, exist_ok=True)
-            for p in [*old, *self.out.glob(".frame_*.tmp")] if overwrite else []:
-                p.unlink()  # with the temporary files a killed run may leave
+            for p in [*self._old, *_frame_files(self.out, temporary=True)]:
+                p.unlink(missing_ok=True)
             self._fd = os.open(
                 self.out / INDEX_FILE, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_TRUNC, 0o644
             )
         except OSError as exc:
             raise MeasurementError(f"-o {self.out}: cannot write there ({exc})") from None
-        self.frames = 0
+        self._old = []
 
     def write(self, source: str, result: FrameResult) -> Path:
         """Write the next frame; returns its PLY path."""
+        if self._closed:
+            raise MeasurementError(f"-o {self.out}: the writer is closed")
+        if self._fd < 0:
+            self._open()
         path = self.out / frame_file(self.frames)
         label = " ".join(str(source).split())
         write_ply(
@@ -173,6 +200,8 @@ class FrameWriter:
             "slits": int(result.slits),
             "ms": round(float(result.ms), 1),
         }
+        if result.message:
+            line["message"] = result.message
         data = (json.dumps(json_safe(line)) + "\n").encode("utf-8")
         os.write(self._fd, data)  # one append: the line is whole or absent
         os.fsync(self._fd)
@@ -180,9 +209,27 @@ class FrameWriter:
         return path
 
     def close(self) -> None:
+        self._closed = True
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+
+
+#: The files of an OUT folder that a run writes: its frames and index; with ``temporary``,
+#: the temporary files of a killed write (``.frame_000000.ply.XXXX.tmp``).
+_FRAME_NAME = re.compile(r"frame_\d{6,}\.ply")
+_TEMPORARY_NAME = re.compile(r"\.frame_\d{6,}\.ply\..+\.tmp")
+
+
+def _frame_files(out: Path, *, temporary: bool = False) -> list[Path]:
+    """The frame files (or their temporary files) and the index in ``out``, sorted."""
+    if not out.is_dir():
+        return []
+    pattern = _TEMPORARY_NAME if temporary else _FRAME_NAME
+    found = sorted(p for p in out.iterdir() if pattern.fullmatch(p.name))
+    if not temporary and (out / INDEX_FILE).exists():
+        found.append(out / INDEX_FILE)
+    return found
 
 
 # --------------------------------------------------------------------------- runners
@@ -238,8 +285,18 @@ def precompute_reference(reference: ReferenceSet) -> ReferenceSet:
     return prepare_scoring(reference)
 
 
-def _init_worker(reference: ReferenceSet, calibration: Calibration) -> None:
+def _watch_parent(parent: int) -> None:
+    """End this worker process as soon as its parent ``parent`` (a pid) has ended (killed,
+    even by SIGKILL, which leaves it no time to end its workers): polled every
+    ``_PARENT_POLL_S``."""
+    while os.getppid() == parent:
+        time.sleep(_PARENT_POLL_S)
+    os._exit(1)
+
+
+def _init_worker(reference: ReferenceSet, calibration: Calibration, parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    threading.Thread(target=_watch_parent, args=(parent,), name="parent", daemon=True).start()
     cv2.setNumThreads(1)  # a core per worker process: the processes are the parallelism
     _WORKER["reference"], _WORKER["calibration"] = reference, calibration
 
@@ -259,7 +316,7 @@ class ProcessRunner:
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(precompute_reference(reference), calibration),
+            initargs=(precompute_reference(reference), calibration, os.getpid()),
         )
 
     def submit(self, image: NDArray, name: str) -> Future:
@@ -287,6 +344,7 @@ class StreamSummary:
     dropped : live frames the camera delivered while the pipeline was busy (not scanned)
     seconds : s, from the first frame read to the last written
     out : the OUT folder
+    empty : frames written that gave no points
     """
 
     frames: int
@@ -294,6 +352,7 @@ class StreamSummary:
     dropped: int
     seconds: float
     out: Path
+    empty: int = 0
 
     @property
     def fps(self) -> float:
@@ -303,7 +362,7 @@ class StreamSummary:
     def line(self, prefix: str = "") -> str:
         return (
             f"{prefix}{self.frames} frames, {self.fps:.2f} fps, {self.dropped} dropped, "
-            f"{self.skipped} skipped"
+            f"{self.skipped} skipped" + (f", {self.empty} without points" if self.empty else "")
         )
 
 
@@ -355,7 +414,7 @@ def run_frames(
     on_bad_frame : {'skip', 'stop'}
         A frame of the wrong size or that cannot be read: skip it and count it, or stop with
         an error (after writing the frames before it). Default skip.
-    progress : called as ``progress(summary)`` as frames finish and
+    progress : called as ``progress(summary)`` as frames finish or are skipped and
         ``progress(summary, final=True)`` at the end. Default none.
 
     Returns
@@ -365,21 +424,33 @@ def run_frames(
     Raises
     ------
     MeasurementError
-        A bad frame with ``on_bad_frame='stop'``; errors of the source or of a frame's scan.
+        A bad frame with ``on_bad_frame='stop'``; a live camera that gives no usable frame
+        for ``_LIVE_BAD_FRAMES_S``; a run in which no frame gave points (every frame skipped
+        or empty: the reason of the first is named, after the frames are written); errors of
+        the source or of a frame's scan.
     """
     w, h = image_size
     pending: deque[tuple[str, Any]] = deque()
-    skipped = 0
+    skipped = empty = with_points = 0
+    first_skip = first_empty = ""
     t0: float | None = None
+    last_usable = time.perf_counter()
     frames = source.frames()
 
     def summary() -> StreamSummary:
         dt = time.perf_counter() - t0 if t0 is not None else 0.0
-        return StreamSummary(writer.frames, skipped, source.dropped, dt, writer.out)
+        return StreamSummary(writer.frames, skipped, source.dropped, dt, writer.out, empty)
 
     def write_head() -> None:
+        nonlocal empty, with_points, first_empty
         name, handle = pending.popleft()
-        writer.write(name, runner.result(handle))
+        result = runner.result(handle)
+        writer.write(name, result)
+        if len(result.points):
+            with_points += 1
+        else:
+            empty += 1
+            first_empty = first_empty or f"{name}: {result.message or 'no points'}"
         if progress:
             progress(summary())
 
@@ -407,14 +478,42 @@ def run_frames(
                     write_head()
                 raise MeasurementError(f"{problem} (--on-bad-frame skip to skip such frames)")
             skipped += 1
+            first_skip = first_skip or problem
+            if progress:
+                progress(summary())
+            if source.live and time.perf_counter() - last_usable > _LIVE_BAD_FRAMES_S:
+                while pending:
+                    write_head()
+                raise MeasurementError(
+                    f"SOURCE {source.name}: no usable frame for {_LIVE_BAD_FRAMES_S:.0f} s "
+                    f"({skipped} skipped; the last: {problem})"
+                )
             continue
+        last_usable = time.perf_counter()
         pending.append((fr.source, runner.submit(fr.image, fr.source)))
     while pending:
         write_head()
     out = summary()
     if progress:
         progress(out, final=True)
+    if with_points == 0:
+        raise MeasurementError(_nothing_usable(source.name, out, first_skip, first_empty))
     return out
+
+
+def _nothing_usable(name: str, s: StreamSummary, first_skip: str, first_empty: str) -> str:
+    """Why a run gave no points at all: its counts and the first reason of each kind."""
+    if not s.frames and not s.skipped:
+        return f"SOURCE {name}: no frames"
+    parts = []
+    if s.skipped:
+        parts.append(f"{s.skipped} skipped (first: {first_skip})")
+    if s.empty:
+        parts.append(
+            f"{s.empty} written without points (first: {first_empty}; is --channel the "
+            "laser's colour, and the calibration this rig's?)"
+        )
+    return f"no frame of {name} gave points: " + "; ".join(parts)
 
 
 # --------------------------------------------------------------------------- stream
@@ -432,12 +531,22 @@ def _positive(x: int | None, name: str, allow_none: bool = False) -> None:
         raise MeasurementError(f"{name} ({flag}) must be an integer >= 1, got {x!r}")
 
 
+def max_workers() -> int:
+    """The most worker processes a run may start: ``_WORKERS_PER_CORE`` per core."""
+    return _WORKERS_PER_CORE * (os.cpu_count() or 1)
+
+
 def check_frame_options(
     workers: int, every: int, max_frames: int | None, on_bad_frame: str
 ) -> None:
     """The checks of the options :func:`stream` and ``batch`` share (one line naming the
     option, a :class:`~multislit.errors.MeasurementError`)."""
     _positive(workers, "workers")
+    if workers > max_workers():
+        raise MeasurementError(
+            f"workers (--workers) must be at most {max_workers()} ({_WORKERS_PER_CORE} per core "
+            f"of this machine's {os.cpu_count() or 1}), got {workers}"
+        )
     _positive(every, "every")
     _positive(max_frames, "max_frames", allow_none=True)
     if on_bad_frame not in ("skip", "stop"):
@@ -493,13 +602,16 @@ def stream(
     Raises
     ------
     MultislitError
-        A bad capture, calibration, SOURCE, option or (with ``on_bad_frame='stop'``) frame.
+        A bad capture, calibration, SOURCE, OUT, option or (with ``on_bad_frame='stop'``)
+        frame; a run in which no frame gave points (see :func:`run_frames`).
     """
     check_frame_options(workers, every, max_frames, on_bad_frame)
     if prior and workers != 1:
         raise MeasurementError(
             f"prior needs the frames in order in one process: use workers 1, not {workers}"
         )
+    as_path(source, "SOURCE", error=CaptureError)
+    writer = FrameWriter(out, overwrite=overwrite)
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)
     src = open_source(
@@ -509,9 +621,8 @@ def stream(
         image_size=cap.image_size,
         features=camera_features,
     )
-    writer = runner = None
+    runner = None
     try:
-        writer = FrameWriter(out, overwrite=overwrite)
         ref = capture_reference(cap)
         if workers == 1:
             runner = InlineRunner(ref, cal, prior=prior)
@@ -530,5 +641,4 @@ def stream(
         src.close()
         if runner is not None:
             runner.close()
-        if writer is not None:
-            writer.close()
+        writer.close()

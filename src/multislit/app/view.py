@@ -10,19 +10,20 @@ Needs Plotly (the optional extra ``pip install 'multislit[view]'``).
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from multislit.app.index import INDEX_FILE, frame_file, read_index
 from multislit.errors import MeasurementError
 from multislit.io import read_ply, write_text_atomic
+from multislit.io.paths import as_path
 
 __all__ = ["load_frames", "write_view"]
 
-_INDEX_FILE = "frames.jsonl"
+
 _MARKER_PX = 2
 _DEPTH_SCALE = "Viridis"
 _SLIT_SCALE = "Turbo"
@@ -47,17 +48,11 @@ def load_frames(source: str | os.PathLike[str]) -> list[tuple[str, dict[str, NDA
     MeasurementError
         A missing source, a folder without frames, a PLY without ``x y z``.
     """
-    p = Path(source)
+    p = as_path(source, "source", error=MeasurementError)
     if p.is_dir():
-        index = p / _INDEX_FILE
+        index = p / INDEX_FILE
         if index.is_file():
-            entries = []
-            for n, line in enumerate(index.read_text(encoding="utf-8").splitlines(), 1):
-                try:
-                    d = json.loads(line)
-                    entries.append((f"frame_{int(d['frame']):06d}.ply", str(d.get("source", ""))))
-                except (ValueError, KeyError, TypeError):
-                    raise MeasurementError(f"{index}: line {n} is not a frame record") from None
+            entries = [(frame_file(d["frame"]), d["source"]) for d in read_index(index)]
         else:
             entries = [(q.name, "") for q in sorted(p.glob("frame_*.ply"))]
         if not entries:
@@ -77,9 +72,12 @@ def load_frames(source: str | os.PathLike[str]) -> list[tuple[str, dict[str, NDA
 
 
 def _take(d: dict[str, NDArray], max_points: int) -> tuple[NDArray, NDArray]:
-    """(K, 3) float64 points and (K,) slit numbers (-1 if unknown), at most ``max_points``."""
+    """(K, 3) float64 points and (K,) slit numbers (-1 if unknown), at most ``max_points``;
+    points with a NaN or infinite coordinate are left out (they cannot be drawn)."""
     xyz = np.stack([d["x"], d["y"], d["z"]], axis=1).astype(np.float64)
     slit = d["slit"].astype(np.int64) if "slit" in d else np.full(len(xyz), -1, np.int64)
+    finite = np.isfinite(xyz).all(axis=1)
+    xyz, slit = xyz[finite], slit[finite]
     if len(xyz) > max_points:
         keep = np.linspace(0, len(xyz) - 1, max_points).round().astype(np.int64)
         xyz, slit = xyz[keep], slit[keep]

@@ -23,6 +23,7 @@ from multislit.errors import CalibrationError, MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, camera_from_dict
 from multislit.geometry.camera import F64
 from multislit.io import json_safe, parse_json, read_json, write_text_atomic
+from multislit.io.paths import as_path
 
 #: The schema name of the calibration JSON.
 SCHEMA = "multislit-calibration/1"
@@ -192,7 +193,7 @@ class Calibration:
     @classmethod
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration JSON file written by :meth:`save`."""
-        p = Path(path)
+        p = as_path(path, "calibration file", error=CalibrationError)
         if not p.is_file():
             raise CalibrationError(
                 f"calibration file not found: {p}; run the calibration first or fix the path"

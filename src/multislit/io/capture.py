@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +30,7 @@ from numpy.typing import NDArray
 
 from multislit.errors import CaptureError
 from multislit.io.jsonio import read_json, write_bytes_atomic, write_json
+from multislit.io.paths import as_path, is_regular_file
 
 FORMAT = "multislit-capture/1"
 MIN_REFERENCES = 2
@@ -79,6 +82,53 @@ def laser_plane(frame: NDArray, channel: str, *, name: str = "frame") -> NDArray
     return img
 
 
+@contextmanager
+def quiet_opencv() -> Iterator[None]:
+    """OpenCV's own log lines off (its failure is reported as one line of ours)."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+
+
+def _jpeg_complete(data: bytes) -> bool:
+    """Whether JPEG ``data`` holds its image's end: an end-of-image marker (FF D9) after the
+    last start-of-scan (FF DA). The coded data escapes every FF byte, so the marker cannot
+    occur inside it; a thumbnail's end comes before the main image's scan."""
+    sos = data.rfind(b"\xff\xda")
+    return sos >= 0 and data.find(b"\xff\xd9", sos + 2) >= 0
+
+
+def decode_image_file(path: Path) -> NDArray:
+    """The pixels of an image file as OpenCV decodes them (grayscale, BGR or BGRA; any depth).
+
+    A JPEG whose data ends before its image does (a file cut short while copied or
+    written) is refused, not decoded into a frame whose lower part is grey.
+
+    Raises
+    ------
+    CaptureError
+        Not a regular file, unreadable, a truncated JPEG, or data OpenCV cannot decode.
+    """
+    if not is_regular_file(path):
+        raise CaptureError(f"image {path} is not a file (a folder, device or pipe)")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise CaptureError(f"cannot read image {path}: {exc.strerror or exc}") from None
+    if data[:3] == b"\xff\xd8\xff" and not _jpeg_complete(data):
+        raise CaptureError(f"image {path} is a truncated JPEG (its data ends before the image)")
+    with quiet_opencv():
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CaptureError(
+            f"cannot read image {path}: not a valid PNG, TIFF or JPEG (OpenCV cannot decode it)"
+        )
+    return img
+
+
 def read_image(
     path: str | Path, expected_size: tuple[int, int] | None = None, *, channel: str = "red"
 ) -> NDArray:
@@ -94,23 +144,20 @@ def read_image(
     Returns
     -------
     image : (H, W) uint8 or uint16
+
+    Raises
+    ------
+    CaptureError
+        A missing, unreadable or truncated file, another pixel type, or another size.
     """
     from multislit.stripes.validation import CHANNELS  # lazy: io loads first
 
-    p = Path(path)
+    p = as_path(path, "image path", error=CaptureError)
     if not p.is_file():
         raise CaptureError(f"image not found: {p}")
     if channel not in CHANNELS:
         raise CaptureError(f"channel must be one of {CHANNELS}, got {channel!r}")
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our message says it
-    try:
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    finally:
-        cv2.utils.logging.setLogLevel(level)
-    if img is None:
-        raise CaptureError(f"cannot read image {p}: not a valid PNG")
-    img = laser_plane(img, channel, name=f"image {p}")
+    img = laser_plane(decode_image_file(p), channel, name=f"image {p}")
     if expected_size is not None:
         w, h = expected_size
         if img.shape != (h, w):
@@ -350,7 +397,7 @@ class Capture:
         require_target : bool
             When False a missing target.json is allowed (scanning with an existing calibration).
         """
-        root = Path(root)
+        root = as_path(root, "capture folder", error=CaptureError)
         if not root.is_dir():
             raise CaptureError(f"capture folder not found: {root}")
         rig = _read_json(root / "rig.json")

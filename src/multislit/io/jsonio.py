@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from multislit.errors import MultislitError
+from multislit.io.paths import as_path
 
 __all__ = [
     "json_safe",
@@ -121,7 +122,7 @@ def read_json(
         not valid JSON (with line and column), or nested or sized beyond what the JSON reader
         accepts.
     """
-    p = Path(path)
+    p = as_path(path, what, error=error)
     if not p.is_file():
         raise error(f"{what} not found: {p}" if not p.exists() else f"{what} {p} is not a file")
     try:

@@ -28,6 +28,7 @@ from multislit import __version__
 from multislit.errors import MultislitError
 from multislit.geometry import as_points
 from multislit.io.jsonio import write_bytes_atomic
+from multislit.io.paths import as_path, ascii_line, is_regular_file
 
 __all__ = ["write_ply", "read_ply", "PLY_SCALAR_TYPES"]
 
@@ -94,14 +95,19 @@ def write_ply(
     binary : bool
         ``True`` (default): ``binary_little_endian``; ``False``: ``ascii``.
     comment : str, optional
-        An extra single-line comment for the header.
+        An extra single-line comment for the header; characters outside ASCII (a PLY header
+        is ASCII) are written as backslash escapes (``\\xe9``).
 
     Raises
     ------
     MultislitError
         Bad shapes, non-finite points, non-integer or out-of-range slit numbers, a comment
-        with a line break, or the file cannot be written.
+        that is not a str or has a line break, a path that is not one, or the file cannot be
+        written.
     """
+    path = as_path(path, "path")
+    if comment is not None and not isinstance(comment, str):
+        raise MultislitError(f"comment must be a str, got {type(comment).__name__}")
     p = as_points(points, 3, "points")
     n = len(p)
     if not np.all(np.isfinite(p)):
@@ -134,7 +140,7 @@ def write_ply(
     if comment is not None:
         if "\n" in comment or "\r" in comment:
             raise MultislitError("comment must be a single line")
-        comments.append(comment)
+        comments.append(ascii_line(comment))
 
     fmt = "binary_little_endian" if binary else "ascii"
     header = ["ply", f"format {fmt} 1.0"]
@@ -268,10 +274,14 @@ def read_ply(path: str | os.PathLike[str]) -> dict[str, NDArray]:
     Raises
     ------
     MultislitError
-        Missing or unreadable file, bad magic, malformed header, no ``vertex`` element, list
-        properties on ``vertex``, truncated or excess data, or values not of the declared type.
+        Missing or unreadable file, a path that is not a regular file (a folder, device or
+        FIFO), bad magic, malformed header, no ``vertex`` element, list properties on
+        ``vertex``, truncated or excess data, or values not of the declared type.
     """
+    path = as_path(path, "path")
     where = f"PLY file {os.fspath(path)!r}"
+    if path.exists() and not is_regular_file(path):
+        raise MultislitError(f"{where} is not a regular file (a folder, device or pipe)")
     try:
         with open(path, "rb") as f:
             data = f.read()

@@ -26,7 +26,6 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -37,7 +36,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.errors import CaptureError
-from multislit.io.capture import laser_plane
+from multislit.io.capture import decode_image_file, laser_plane, quiet_opencv
+from multislit.io.paths import as_path
 from multislit.stripes.validation import CHANNELS
 
 __all__ = ["Frame", "FrameSource", "open_source", "IMAGE_SUFFIXES", "CHANNELS"]
@@ -50,6 +50,7 @@ _GLOB_CHARS = set("*?[")
 _OPEN_TIMEOUT_S = 5.0  # a live camera that gives no first frame in this time is absent
 _FRAME_TIMEOUT_S = 10.0  # a live camera silent this long has stopped
 _MAX_READ_FAILURES = 50  # consecutive failed reads before a live camera counts as stopped
+_MAX_CAMERA_INDEX = 9999  # OpenCV camera numbers (with a capture API's offset, e.g. 1200 + N)
 
 
 @dataclass(frozen=True)
@@ -75,17 +76,6 @@ class Frame:
     source: str
     image: NDArray | None
     error: str = ""
-
-
-@contextmanager
-def _quiet_opencv() -> Iterator[None]:
-    """OpenCV's own log lines off (its failure is reported as one line of ours)."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-    try:
-        yield
-    finally:
-        cv2.utils.logging.setLogLevel(level)
 
 
 def _now() -> str:
@@ -146,11 +136,14 @@ class ImageFiles(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         for i, p in enumerate(self.paths):
-            with _quiet_opencv():
-                img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            try:
+                img = decode_image_file(p)
+            except CaptureError as exc:
+                yield Frame(i, p.name, None, str(exc))
+                continue
             fr = self._frame(i, p.name, img)
             if fr.error:
-                fr = Frame(i, p.name, None, f"{p}: {fr.error} (not a readable 8/16-bit image?)")
+                fr = Frame(i, p.name, None, f"{p}: {fr.error}")
             yield fr
 
 
@@ -176,7 +169,7 @@ class VideoFile(FrameSource):
     def __init__(self, name: str, channel: str) -> None:
         super().__init__(name, channel)
         path = Path(name)
-        with _quiet_opencv():
+        with quiet_opencv():
             self._cap = cv2.VideoCapture(str(path))
             ok = self._cap.isOpened()
             first = self._cap.read() if ok else (False, None)
@@ -308,7 +301,7 @@ class OpenCVCamera(_LiveSource):
 
     def __init__(self, name: str, index: int, channel: str) -> None:
         super().__init__(name, channel)
-        with _quiet_opencv():
+        with quiet_opencv():
             self._cap = cv2.VideoCapture(index)
         if not self._cap.isOpened():
             self._cap.release()
@@ -479,7 +472,8 @@ def open_source(
     CaptureError
         A SOURCE that does not exist or cannot be read, a camera that is absent, a bad option.
     """
-    spec = os.fspath(source)
+    as_path(source, "SOURCE", error=CaptureError)
+    spec = os.fsdecode(os.fspath(source))
     if channel not in CHANNELS:
         raise CaptureError(f"channel must be one of {', '.join(CHANNELS)}, got {channel!r}")
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
@@ -489,8 +483,10 @@ def open_source(
     src: FrameSource
     if spec.startswith("camera:"):
         num = spec[len("camera:") :]
-        if not num.isdigit():
-            raise CaptureError(f"SOURCE {spec}: give the camera number, e.g. camera:0")
+        if not (num.isascii() and num.isdigit()) or int(num) > _MAX_CAMERA_INDEX:
+            raise CaptureError(
+                f"SOURCE {spec}: give the camera number (0 to {_MAX_CAMERA_INDEX}), e.g. camera:0"
+            )
         src = OpenCVCamera(spec, int(num), channel)
     elif spec.startswith("basler:"):
         src = BaslerCamera(

@@ -24,7 +24,8 @@ from multislit.calibrate import Calibration
 from multislit.errors import CalibrationError, MeasurementError
 from multislit.identify import Identification, ReferenceSet, capture_reference, identify
 from multislit.io import Capture
-from multislit.reconstruct.triangulation import triangulate
+from multislit.io.paths import as_path
+from multislit.reconstruct.triangulation import check_min_angle, triangulate
 from multislit.stripes import as_image, refine_centres
 
 F64 = NDArray[np.float64]
@@ -326,6 +327,7 @@ def _scan(
         raise MeasurementError(
             f"previous must be the ScanResult of the previous frame, got {type(previous).__name__}"
         )
+    min_angle_deg = check_min_angle(min_angle_deg)
     size, planes = _check_scan_inputs(image, reference, calibration)
     prior = None
     if previous is not None:
@@ -411,6 +413,8 @@ def scan_image(
     MeasurementError
         ``reference`` is not a :class:`~multislit.identify.ReferenceSet`, or was prepared for
         another image size, or ``previous`` is not a :class:`ScanResult`.
+    MultislitError
+        ``min_angle_deg`` is not a number of degrees in [0, 90).
     """
     return _scan(
         image,
@@ -447,7 +451,11 @@ def load_capture_calibration(capture: Capture, path: str | Path | None = None) -
         The file is missing (with the hint to run ``multislit calibrate``), malformed, or made
         for another image size than the capture's.
     """
-    p = Path(path) if path is not None else capture.root / CALIBRATION_FILE
+    p = (
+        as_path(path, "calibration", error=CalibrationError)
+        if path is not None
+        else capture.root / CALIBRATION_FILE
+    )
     if not p.is_file():
         raise CalibrationError(
             f"calibration file not found: {p}; run 'multislit calibrate {capture.root}' first"

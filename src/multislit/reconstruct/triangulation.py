@@ -23,6 +23,22 @@ from multislit.geometry import Camera, PinholeCamera, as_points, intersect_rays_
 F64 = NDArray[np.float64]
 
 
+def check_min_angle(min_angle_deg: object) -> float:
+    """``min_angle_deg`` as a float if it is a number of degrees in [0, 90); else a
+    :class:`~multislit.errors.MultislitError` naming it."""
+    if isinstance(min_angle_deg, bool) or not isinstance(
+        min_angle_deg, int | float | np.integer | np.floating
+    ):
+        raise MultislitError(
+            f"min_angle_deg must be a number of degrees, got {type(min_angle_deg).__name__} "
+            f"{min_angle_deg!r}"
+        )
+    x = float(min_angle_deg)
+    if not 0.0 <= x < 90.0:  # NaN fails too
+        raise MultislitError(f"min_angle_deg must be 0 to less than 90 degrees, got {x}")
+    return x
+
+
 def triangulate_matrix(
     C: ArrayLike, P: ArrayLike, uv: ArrayLike, xp: ArrayLike, min_sin: float = 1e-6
 ) -> tuple[F64, NDArray[np.bool_]]:
@@ -110,7 +126,8 @@ def triangulate(
     Raises
     ------
     MultislitError
-        ``slit`` has a value >= K or < -1, or the shapes do not match.
+        ``slit`` has a value >= K or < -1, the shapes do not match, or ``min_angle_deg`` is
+        not a number of degrees in [0, 90).
     """
     pl = as_points(planes, 4, "planes")
     p = as_points(uv, 2, "uv")
@@ -126,7 +143,7 @@ def triangulate(
             f"slit has values outside 0..{len(pl) - 1} (e.g. {int(s[bad][0])}; -1 = "
             "unidentified); the planes and the slit numbers do not belong together"
         )
-    min_cos = math.sin(math.radians(min_angle_deg))
+    min_cos = math.sin(math.radians(check_min_angle(min_angle_deg)))
     if type(camera) is PinholeCamera:
         pts = np.empty((len(p), 3))
         valid = np.empty(len(p), bool)
