@@ -216,14 +216,25 @@ def test_noise_histogram_matches_bincount(dtype):
         assert noise_from_difference(img) == pytest.approx(expected, rel=1e-12, abs=0)
 
 
-def test_texture_sigma_histogram_median_matches_numpy_median():
+def test_texture_sigma_is_read_beside_the_line():
+    """A bright line on a clean background leaves the texture beside it at the noise; texture
+    on either side raises it there, and the line's own structure never counts."""
     rng = np.random.default_rng(9)
-    for h, w, sw in ((70, 90, 3.0), (40, 33, 4.1), (17, 100, 2.0), (5, 20, 3.0)):
-        img = _image(rng, np.uint8, h, w)
-        # uint8 takes the per-block histogram; the same values as float32 take np.median
-        np.testing.assert_array_equal(
-            texture_sigma(img, sw), texture_sigma(img.astype(np.float32), sw)
-        )
+    h, w, sw = 120, 160, 4.0
+    img = rng.normal(0, 1.0, (h, w)).astype(np.float32)
+    u = np.arange(w)
+    c = 80 + 2.0 * np.sin(np.arange(h) / 12)  # a bending line: its own differences are large
+    img += 200 * np.exp(-0.5 * ((u[None, :] - c[:, None]) / 1.7) ** 2)
+    on_line = (np.arange(h), np.rint(c).astype(int))
+    level = texture_sigma(img, sw)
+    assert level.shape == (h, w) and level.dtype == np.float32
+    lag = np.abs(img[4:] - img[:-4])[:, 78:82]
+    assert np.median(lag) > 10  # the line's own bends: large differences over the lag
+    assert 0.5 < np.median(level[on_line]) < 2.5  # ~ the noise, not the line's bends
+    rough = img.copy()
+    rough[:, 95:110] += rng.normal(0, 20, (h, 15)).astype(np.float32)  # texture right of it
+    assert np.median(texture_sigma(rough, sw)[on_line]) > 10 * np.median(level[on_line])
+    assert texture_sigma(np.zeros((3, 10), np.uint8), 4.0).max() == 0  # shorter than the lag
 
 
 def _ridge_contrast_ref(profiles, r, c, fwhm_px, reach_px):

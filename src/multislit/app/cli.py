@@ -320,7 +320,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def _frame_options(p: argparse.ArgumentParser) -> None:
-    from multislit.io.sources import CHANNELS
+    from multislit.io.sources import CHANNEL_CHOICES
 
     p.add_argument("capture", help="capture folder (rig.json, reference/, calibration.json)")
     p.add_argument(
@@ -339,8 +339,10 @@ def _frame_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--channel",
-        choices=CHANNELS,
-        help="colour frames: the laser's channel (default rig.json laser_channel, else red)",
+        choices=CHANNEL_CHOICES,
+        help="colour frames: the laser's channel; auto: in each frame the plane in which the "
+        "stripes stand out most, clipped planes avoided (default rig.json laser_channel, "
+        "else auto)",
     )
     p.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
     p.add_argument("--overwrite", action="store_true", help="replace frames already in OUT")

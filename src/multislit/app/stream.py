@@ -519,7 +519,7 @@ def _nothing_usable(name: str, s: StreamSummary, first_skip: str, first_empty: s
 # --------------------------------------------------------------------------- stream
 def laser_channel(capture: Capture, channel: str | None) -> str:
     """``channel`` if given, else the capture's (:attr:`~multislit.io.Capture.laser_channel`:
-    rig.json's ``laser_channel``, else red)."""
+    rig.json's ``laser_channel``, else auto)."""
     return channel if channel is not None else capture.laser_channel
 
 
@@ -584,8 +584,10 @@ def stream(
         Scan every ``every``-th frame of the source. Default 1.
     on_bad_frame : {'skip', 'stop'}
         Frames of the wrong size or unreadable: skip and count, or stop. Default skip.
-    channel : {'red', 'green', 'blue', 'luma'}, optional
-        The laser's channel in colour frames. Default: rig.json's ``laser_channel``, else red.
+    channel : {'auto', 'red', 'green', 'blue', 'luma'}, optional
+        The laser's channel in colour frames (``auto``: in each frame the plane in which the
+        stripes stand out most, clipped planes avoided). Default: rig.json's
+        ``laser_channel``, else auto.
     calibration : calibration file. Default ``CAPTURE/calibration.json``.
     camera_features : (name, value) pairs set on a Basler camera. Default none.
     overwrite : bool

@@ -31,6 +31,8 @@ from numpy.typing import NDArray
 from multislit.errors import CaptureError
 from multislit.io.jsonio import read_json, write_bytes_atomic, write_json
 from multislit.io.paths import as_path, is_regular_file
+from multislit.stripes.channels import resolve_channel
+from multislit.stripes.validation import AUTO, CHANNEL_CHOICES, as_image
 
 FORMAT = "multislit-capture/1"
 MIN_REFERENCES = 2
@@ -50,8 +52,10 @@ def laser_plane(frame: NDArray, channel: str, *, name: str = "frame") -> NDArray
     Parameters
     ----------
     frame : (H, W), (H, W, 1), (H, W, 3) BGR or (H, W, 4) BGRA array, uint8 or uint16
-    channel : the plane of a colour image: ``"red"``, ``"green"``, ``"blue"`` or ``"luma"``
-        (Rec. 601); a grayscale image is returned as it is
+    channel : the plane of a colour image: ``"auto"`` (the plane in which the stripes stand
+        out most, clipped planes avoided: :func:`~multislit.stripes.channels.choose_channel`),
+        ``"red"``, ``"green"``, ``"blue"`` or ``"luma"`` (Rec. 601); a grayscale image is
+        returned as it is
     name : what the image is, for messages (e.g. ``"image scans/a.png"``); default "frame"
 
     Returns
@@ -63,8 +67,6 @@ def laser_plane(frame: NDArray, channel: str, *, name: str = "frame") -> NDArray
     CaptureError
         (a ``ValueError``) for another shape or pixel type, or an unknown ``channel``.
     """
-    from multislit.stripes.validation import as_image  # lazy: io loads first
-
     img = np.asarray(frame)
     if img.dtype not in (np.uint8, np.uint16):
         raise CaptureError(f"{name} has pixel type {img.dtype}; expected 8- or 16-bit")
@@ -73,8 +75,9 @@ def laser_plane(frame: NDArray, channel: str, *, name: str = "frame") -> NDArray
     if img.ndim == 3:
         if img.shape[2] not in (3, 4):
             raise CaptureError(f"{name} has {img.shape[2]} channels; expected 1, 3 or 4")
-        try:  # OpenCV's BGR(A) -> RGB, then the package's one image check picks the plane
-            img = np.ascontiguousarray(as_image(img[:, :, 2::-1], name=name, channel=channel))
+        try:  # the package's one image check picks the plane of OpenCV's BGR(A) order
+            plane = resolve_channel(img[:, :, :3], channel, order="bgr")
+            img = np.ascontiguousarray(as_image(img, name=name, channel=plane, order="bgr"))
         except ValueError as exc:
             raise CaptureError(str(exc)) from None
     if img.ndim != 2:
@@ -130,7 +133,7 @@ def decode_image_file(path: Path) -> NDArray:
 
 
 def read_image(
-    path: str | Path, expected_size: tuple[int, int] | None = None, *, channel: str = "red"
+    path: str | Path, expected_size: tuple[int, int] | None = None, *, channel: str = AUTO
 ) -> NDArray:
     """Read an 8- or 16-bit image (PNG, or any format OpenCV reads) as one plane.
 
@@ -138,8 +141,9 @@ def read_image(
     ----------
     path : path of the image
     expected_size : (W, H) px, optional; a different size is an error
-    channel : the plane of a colour image: ``"red"`` (default, a red laser), ``"green"``,
-        ``"blue"`` or ``"luma"`` (Rec. 601); a grayscale image is returned as it is
+    channel : the plane of a colour image: ``"auto"`` (default: the plane in which the
+        stripes stand out most, clipped planes avoided), ``"red"``, ``"green"``, ``"blue"`` or
+        ``"luma"`` (Rec. 601); a grayscale image is returned as it is
 
     Returns
     -------
@@ -150,13 +154,11 @@ def read_image(
     CaptureError
         A missing, unreadable or truncated file, another pixel type, or another size.
     """
-    from multislit.stripes.validation import CHANNELS  # lazy: io loads first
-
     p = as_path(path, "image path", error=CaptureError)
     if not p.is_file():
         raise CaptureError(f"image not found: {p}")
-    if channel not in CHANNELS:
-        raise CaptureError(f"channel must be one of {CHANNELS}, got {channel!r}")
+    if channel not in CHANNEL_CHOICES:
+        raise CaptureError(f"channel must be one of {CHANNEL_CHOICES}, got {channel!r}")
     img = laser_plane(decode_image_file(p), channel, name=f"image {p}")
     if expected_size is not None:
         w, h = expected_size
@@ -368,22 +370,21 @@ class Capture:
     @property
     def laser_channel(self) -> str:
         """The plane read from colour images: rig.json's ``"laser_channel"`` (``"red"``,
-        ``"green"``, ``"blue"`` or ``"luma"``), default ``"red"``."""
-        from multislit.stripes.validation import CHANNELS
-
-        ch = self.rig.get("laser_channel", "red")
-        if ch not in CHANNELS:
+        ``"green"``, ``"blue"``, ``"luma"`` or ``"auto"``); without one, ``"auto"``: in each
+        image the plane in which the stripes stand out most, clipped planes avoided."""
+        ch = self.rig.get("laser_channel", AUTO)
+        if ch not in CHANNEL_CHOICES:
             raise CaptureError(
-                f"{self.root / 'rig.json'}: 'laser_channel' must be one of {list(CHANNELS)}, "
-                f"got {ch!r}"
+                f"{self.root / 'rig.json'}: 'laser_channel' must be one of "
+                f"{list(CHANNEL_CHOICES)}, got {ch!r}"
             )
         return ch
 
     def image(self, path: str | Path) -> NDArray:
         """Read one of this capture's images (any path), checking its size against rig.json.
 
-        A colour image is read as its :attr:`laser_channel` (red by default), the plane in
-        which the laser's line stands out most; grayscale images are read as they are.
+        A colour image is read as its :attr:`laser_channel` (by default the plane in which
+        the laser's line stands out most); grayscale images are read as they are.
         """
         return read_image(path, self.image_size, channel=self.laser_channel)
 

@@ -11,8 +11,10 @@
   (``PYLON_CAMEMU=1``) replays image files as such a camera when its ``ImageFilename`` and
   ``ImageFileMode`` features are set (see ``features``).
 
-Colour frames become the laser's channel (``channel``, red by default), not luminance: a red
-laser on dark texture is far clearer in the red channel than in a grey mix.
+Colour frames become the laser's channel (``channel``), not luminance: a red laser on dark
+texture is far clearer in the red channel than in a grey mix. By default (``"auto"``) each
+frame's plane is the one in which the stripes stand out most, clipped planes avoided: red
+for a red laser, green or blue where the red plane is clipped over an over-exposed line.
 
 A live source never makes the camera wait: a background thread takes every frame the camera
 delivers and keeps only the newest; frames replaced before the reader took them are counted in
@@ -38,9 +40,9 @@ from numpy.typing import NDArray
 from multislit.errors import CaptureError
 from multislit.io.capture import decode_image_file, laser_plane, quiet_opencv
 from multislit.io.paths import as_path
-from multislit.stripes.validation import CHANNELS
+from multislit.stripes.validation import AUTO, CHANNEL_CHOICES
 
-__all__ = ["Frame", "FrameSource", "open_source", "IMAGE_SUFFIXES", "CHANNELS"]
+__all__ = ["Frame", "FrameSource", "open_source", "IMAGE_SUFFIXES", "CHANNEL_CHOICES"]
 
 #: File name endings read as images from a folder (case-insensitive).
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
@@ -439,7 +441,7 @@ class _Every(FrameSource):
 def open_source(
     source: str | os.PathLike[str],
     *,
-    channel: str = "red",
+    channel: str = AUTO,
     every: int = 1,
     image_size: tuple[int, int] | None = None,
     features: Sequence[tuple[str, str]] = (),
@@ -451,8 +453,10 @@ def open_source(
     source : str or path-like
         A folder or glob of images, a video file, ``camera:N``, ``basler:`` or
         ``basler:SERIAL``.
-    channel : {'red', 'green', 'blue', 'luma'}
-        The channel of colour frames that shows the laser; ``luma``: luminance. Default red.
+    channel : {'auto', 'red', 'green', 'blue', 'luma'}
+        The channel of colour frames that shows the laser; ``luma``: luminance; ``auto``
+        (default): in each frame the plane in which the stripes stand out most, clipped
+        planes avoided (:func:`~multislit.stripes.channels.choose_channel`).
     every : int
         Keep every ``every``-th frame of the source (its frames 0, k, 2k, ...). Default 1.
     image_size : (W, H) px, optional
@@ -474,8 +478,8 @@ def open_source(
     """
     as_path(source, "SOURCE", error=CaptureError)
     spec = os.fsdecode(os.fspath(source))
-    if channel not in CHANNELS:
-        raise CaptureError(f"channel must be one of {', '.join(CHANNELS)}, got {channel!r}")
+    if channel not in CHANNEL_CHOICES:
+        raise CaptureError(f"channel must be one of {', '.join(CHANNEL_CHOICES)}, got {channel!r}")
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise CaptureError(f"every must be an integer >= 1, got {every!r}")
     if features and not spec.startswith("basler:"):

@@ -20,8 +20,11 @@ scattered along them, by stage:
 
 :func:`extract_slits` runs the three steps. After identification, :func:`refine_centres`
 (:mod:`~multislit.stripes.refine`) re-centres the points for triangulation. :func:`as_image`
-is the package's check of an image argument; a colour (H, W, 3) RGB image gives one plane,
-its ``channel`` (red by default, the laser's colour).
+is the package's check of an image argument; a colour (H, W, 3) image gives one plane, its
+``channel``, in RGB or (``order="bgr"``, ``cv2.imread``'s arrays) BGR order.
+:func:`extract_slits` takes the plane from the data unless ``channel`` is given
+(:func:`choose_channel`: the plane in which the stripes stand out most, clipped planes
+avoided).
 
 Photos: the noise floor is one quantisation step of the data and the saturation level is
 read from the data's flat tops (:func:`~multislit.stripes.separation.clip_level`).
@@ -48,6 +51,7 @@ from multislit.stripes.centres import (
     stripe_like,
     texture_sigma,
 )
+from multislit.stripes.channels import choose_channel, resolve_channel
 from multislit.stripes.linking import (
     DEFAULT_MIN_LENGTH,
     SlitExtraction,
@@ -83,11 +87,23 @@ from multislit.stripes.sizes import (
     ridge_contrast,
 )
 from multislit.stripes.slope import slope_sigma, stripe_slope
-from multislit.stripes.validation import CHANNELS, SlitExtractionError, as_image
+from multislit.stripes.validation import (
+    AUTO,
+    CHANNEL_CHOICES,
+    CHANNELS,
+    ORDERS,
+    SlitExtractionError,
+    as_image,
+)
 
 __all__ = [
     "as_image",
     "CHANNELS",
+    "CHANNEL_CHOICES",
+    "AUTO",
+    "ORDERS",
+    "choose_channel",
+    "resolve_channel",
     "BACKGROUNDS",
     "row_opening_background",
     "ridge_contrast",

@@ -514,78 +514,50 @@ def along_slits(slit_image: NDArray, u: F64, v: F64, stripe_width_px: float) -> 
     return jvv <= math.tan(math.radians(MAX_LEAN_DEG)) ** 2 * juu
 
 
-#: Side of the blocks (in stripe widths, at least 16 px) over which :func:`texture_sigma`
-#: takes its medians.
-TEXTURE_BLOCK_WIDTHS = 4.0
-
-
-@njit(cache=True)
-def _block_medians_u8(x, lag, b, nb_v, nb_u):
-    """(nb_v, nb_u) float32: the median (np.median's, the mean of the middle two of an even
-    count) of |x[r + lag, c] - x[r, c]| over each ``b`` x ``b`` block of a uint8 image, the
-    blocks past the last difference row or image column reading the last one (np.pad's
-    "edge"), by a histogram of the 256 values a block can hold."""
-    h, w = x.shape
-    hd = h - lag
-    n = b * b
-    out = np.empty((nb_v, nb_u), np.float32)
-    hist = np.empty(256, np.int64)
-    for i in range(nb_v):
-        for j in range(nb_u):
-            hist[:] = 0
-            for rr in range(i * b, (i + 1) * b):
-                r = min(rr, hd - 1)
-                lo = x[r]
-                hi = x[r + lag]
-                for cc in range(j * b, (j + 1) * b):
-                    c = min(cc, w - 1)
-                    a = int(hi[c])
-                    e = int(lo[c])
-                    hist[a - e if a >= e else e - a] += 1
-            # values of ranks n // 2 - 1 and n // 2 (0-based)
-            k_lo = n // 2 - 1 if n % 2 == 0 else n // 2
-            k_hi = n // 2
-            v_lo = -1
-            v_hi = -1
-            cum = 0
-            for v in range(256):
-                cum += hist[v]
-                if v_lo < 0 and cum > k_lo:
-                    v_lo = v
-                if cum > k_hi:
-                    v_hi = v
-                    break
-            out[i, j] = np.float32(np.float32(v_lo) + np.float32(v_hi)) / np.float32(2.0)
-    return out
+#: The texture a centre must stand out of is read beside it: in a ring from
+#: ``TEXTURE_INNER_WIDTHS`` to ``TEXTURE_OUTER_WIDTHS`` stripe widths to either side of it,
+#: ``TEXTURE_HALF_HEIGHT_WIDTHS`` stripe widths above and below (not on the line itself,
+#: whose own bends and brightness steps along a checkerboard would count as texture).
+TEXTURE_INNER_WIDTHS = 1.5
+TEXTURE_OUTER_WIDTHS = 4.0
+TEXTURE_HALF_HEIGHT_WIDTHS = 3.0
+#: A centre is kept in the photo mode where its peak reaches ``TEXTURE_FRACTION * k_sigma``
+#: times :func:`texture_sigma` (the ring's highest local level, an envelope rather than a
+#: typical sigma: a fraction of the detection threshold in sigmas).
+TEXTURE_FRACTION = 0.32
 
 
 def texture_sigma(slit_image: NDArray, stripe_width_px: float) -> NDArray[np.float32]:
-    """(H, W) float32, the local level of texture in a slit image (intensity units, a sigma).
+    """(H, W) float32, the level of texture beside each pixel of a slit image (intensity
+    units, as a sigma).
 
     Stripes run along v, so the difference of the slit image and itself shifted by one
     stripe width along v cancels them (like :func:`~multislit.stripes.separation.
     noise_from_difference` cancels them in the image); texture, edges and blotches do not
-    cancel. 1.4826 / sqrt(2) times the median absolute difference over blocks of
-    ``TEXTURE_BLOCK_WIDTHS`` stripe widths, the largest of each block and its 8 neighbours,
-    is the level a stripe must stand out of: noise where the background is clean, more on a
-    textured surface.
+    cancel. The mean absolute difference over windows of one stripe width, as a Gaussian
+    sigma (times sqrt(pi) / 2), gives a local level; a pixel's texture is the highest level
+    in the ring beside it (:data:`TEXTURE_INNER_WIDTHS` to :data:`TEXTURE_OUTER_WIDTHS`
+    stripe widths to either side, :data:`TEXTURE_HALF_HEIGHT_WIDTHS` above and below):
+    noise where the surroundings are clean, more on a textured surface, and never the
+    line's own structure.
     """
     h, w = slit_image.shape
     lag = max(1, math.ceil(stripe_width_px))
-    b = max(16, math.ceil(TEXTURE_BLOCK_WIDTHS * stripe_width_px))
-    nb_v, nb_u = -(-h // b), -(-w // b)
-    if slit_image.dtype == np.uint8 and h > lag:
-        # the differences are integers 0..255: each block's median from its histogram
-        med = _block_medians_u8(slit_image, lag, b, nb_v, nb_u)
-    else:
-        x = slit_image.astype(np.float32)
+    x = slit_image.astype(np.float32)
+    if h > lag:
         d = np.abs(x[lag:] - x[:-lag])
-        pad = np.pad(d, ((0, nb_v * b - d.shape[0]), (0, nb_u * b - w)), mode="edge")
-        blocks = pad.reshape(nb_v, b, nb_u, b).transpose(0, 2, 1, 3).reshape(nb_v, nb_u, b * b)
-        med = np.median(blocks, axis=2).astype(np.float32)
-    level = med * (1.4826 / math.sqrt(2.0))
-    level = cv2.dilate(level, np.ones((3, 3), np.uint8))
-    return cv2.resize(level, (nb_u * b, nb_v * b), interpolation=cv2.INTER_NEAREST)[:h, :w]
+        d = np.pad(d, ((0, lag), (0, 0)), mode="edge")
+    else:
+        d = np.zeros_like(x)
+    k = max(3, round(stripe_width_px) | 1)
+    level = cv2.blur(d, (k, k), borderType=cv2.BORDER_REFLECT) * np.float32(math.sqrt(math.pi) / 2)
+    # the windows of the ring reach no closer than the inner half-width
+    inner = round(TEXTURE_INNER_WIDTHS * stripe_width_px) + k // 2
+    outer = max(inner + 1, round(TEXTURE_OUTER_WIDTHS * stripe_width_px))
+    tall = round(TEXTURE_HALF_HEIGHT_WIDTHS * stripe_width_px)
+    ring = np.ones((2 * tall + 1, 2 * outer + 1), np.uint8)
+    ring[:, outer - inner : outer + inner + 1] = 0
+    return cv2.dilate(level, ring, borderType=cv2.BORDER_REFLECT)
 
 
 def stripe_like(

@@ -14,12 +14,14 @@ from multislit.stripes.centres import (
     CENTRE_METHODS,
     DEFAULT_K_SIGMA,
     DEFAULT_V_SMOOTH,
+    TEXTURE_FRACTION,
     StripeCentres,
     along_slits,
     estimate_noise,
     find_centres_validated,
     texture_sigma,
 )
+from multislit.stripes.channels import resolve_channel
 from multislit.stripes.openings import remove_streaks
 from multislit.stripes.separation import background_validated, separate_validated
 from multislit.stripes.sizes import (
@@ -228,7 +230,8 @@ def extract_slits(
     max_gap: int = 2,
     min_length: int = DEFAULT_MIN_LENGTH,
     reject_texture: bool = False,
-    channel: str = "red",
+    channel: str | None = None,
+    order: str = "rgb",
 ) -> SlitExtraction:
     """Stripe centre points, their segments and the dot image of one camera image.
 
@@ -242,11 +245,11 @@ def extract_slits(
     follows checker squares and edges where the row median leaves ripples), and only centres
     that look like a laser line are kept: darker on both sides in the slit image
     (:func:`~multislit.stripes.centres.stripe_like`: not an edge or a plateau), standing
-    ``k_sigma`` times out of the local texture
-    (:func:`~multislit.stripes.centres.texture_sigma`), on structure that runs along the
+    out of the texture beside it (``TEXTURE_FRACTION * k_sigma`` times
+    :func:`~multislit.stripes.centres.texture_sigma`), on structure that runs along the
     slits (:func:`~multislit.stripes.centres.along_slits`: not a horizontal edge or a corner)
-    and linked into a segment (continuing over rows). The simulator's images keep 96-99.5 %
-    as many linked centres in this mode; the default keeps the paper's row median.
+    and linked into a segment (continuing over rows). The simulator's images keep most of
+    their linked centres in this mode; the default keeps the paper's row median.
 
     Parameters
     ----------
@@ -260,8 +263,15 @@ def extract_slits(
     v_smooth : rows (odd) averaged along the stripe for the sub-pixel fit
     max_du, max_gap, min_length : see :func:`link_segments`
     reject_texture : the photo mode described above; default False
-    channel : the plane of a colour image (:data:`~multislit.stripes.validation.CHANNELS`);
-        default ``"red"``
+    channel : {'auto', 'red', 'green', 'blue', 'luma'} or None
+        The plane of a colour image; ``"auto"`` or None (default): the plane whose stripes
+        stand out most above their background, clipped planes avoided
+        (:func:`~multislit.stripes.channels.choose_channel`: the red plane of a red laser,
+        the green or blue one where the red is clipped over the line). Ignored for a
+        grayscale image.
+    order : {'rgb', 'bgr'}
+        The order of a colour image's planes: ``"bgr"`` for arrays from ``cv2.imread``.
+        Default ``"rgb"``.
 
     Returns
     -------
@@ -274,7 +284,8 @@ def extract_slits(
     """
     # one contiguous plane: OpenCV and the compiled kernels read rows (a colour image's plane
     # is a strided view)
-    img = np.ascontiguousarray(as_image(image, channel=channel))
+    plane = resolve_channel(image, channel, order=order)
+    img = np.ascontiguousarray(as_image(image, channel=plane, order=order))
     background = "opening" if reject_texture else "median"
     if method not in CENTRE_METHODS:
         raise SlitExtractionError(f"method must be one of {CENTRE_METHODS}, got {method!r}")
@@ -307,7 +318,7 @@ def extract_slits(
     if reject_texture:
         r = np.rint(centres.v).astype(np.intp)
         c = np.clip(np.rint(centres.u).astype(np.intp), 0, img.shape[1] - 1)
-        keep = centres.peak >= k_sigma * texture_sigma(slits, sw)[r, c]
+        keep = centres.peak >= TEXTURE_FRACTION * k_sigma * texture_sigma(slits, sw)[r, c]
         keep &= along_slits(slits, centres.u, centres.v, sw)
         centres = StripeCentres(*(a[keep] for a in centres))
     segment = link_segments(

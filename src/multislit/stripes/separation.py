@@ -574,6 +574,7 @@ def separate(
     saturation_level: float | None = None,
     channel: str = "red",
     background: str = "median",
+    order: str = "rgb",
 ) -> Separation:
     """Split an image into stripes (slits) and dots on a flat background (paper Fig. 11).
 
@@ -595,6 +596,9 @@ def separate(
         ``"opening"``, the row opening (:func:`row_opening_background`) for photos of
         checkerboards and other scenes whose bright patches are narrower than the median's
         window (~8 stripe widths)
+    order : {'rgb', 'bgr'}
+        The order of a colour image's planes (``"bgr"`` for ``cv2.imread``'s arrays); default
+        ``"rgb"``
 
     Returns
     -------
@@ -608,7 +612,7 @@ def separate(
     """
     # one contiguous plane: OpenCV and the compiled kernels read rows (a colour image's plane
     # is a strided view)
-    img = np.ascontiguousarray(as_image(image, channel=channel))
+    img = np.ascontiguousarray(as_image(image, channel=channel, order=order))
     if background not in BACKGROUNDS:
         raise SlitExtractionError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     sw = positive_px(stripe_width_px, "stripe_width_px")

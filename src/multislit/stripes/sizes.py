@@ -221,14 +221,14 @@ def ridge_contrast(
     return np.where(peak > 0, (peak - hi) / np.where(peak > 0, peak, 1.0), 0.0)
 
 
-def _sample(n: int, count: int) -> NDArray[np.intp]:
+def sample_rows(n: int, count: int) -> NDArray[np.intp]:
     """``count`` evenly spaced indices in [0, n) (all if n <= count)."""
     if n <= count:
         return np.arange(n)
     return np.linspace(0, n - 1, count).round().astype(np.intp)
 
 
-def estimate_stripe_width(image: ArrayLike, *, channel: str = "red") -> float:
+def estimate_stripe_width(image: ArrayLike, *, channel: str = "red", order: str = "rgb") -> float:
     """Estimate the typical stripe FWHM (px, along the row) of an image.
 
     Ridge scale selection (see ``_ridge_fwhm``) on 24 evenly spaced rows: the stripes are
@@ -236,13 +236,16 @@ def estimate_stripe_width(image: ArrayLike, *, channel: str = "red") -> float:
 
     Where edges, texture or JPEG blocks outnumber the stripes (a photo with one laser line),
     the median of each profile's strongest ridge is taken instead when the two disagree by
-    more than 1.5 times.
+    more than 1.5 times. Where the rows' maxima are flat tops (a clipped, over-exposed line:
+    the scale selection answers at its corners), their full width at half maximum, measured
+    directly, is taken when it is wider.
 
     Parameters
     ----------
     image : (H, W) grayscale or (H, W, 3) RGB image, uint8, uint16 or float
     channel : the plane of a colour image (:data:`~multislit.stripes.validation.CHANNELS`);
         default ``"red"``
+    order : {'rgb', 'bgr'}, the order of a colour image's planes; default ``"rgb"``
 
     Returns
     -------
@@ -253,8 +256,8 @@ def estimate_stripe_width(image: ArrayLike, *, channel: str = "red") -> float:
     SlitExtractionError
         if the image is invalid or shows no stripe-like ridge.
     """
-    img = as_image(image, channel=channel)
-    idx = _sample(img.shape[0] - 1, 24)
+    img = as_image(image, channel=channel, order=order)
+    idx = sample_rows(img.shape[0] - 1, 24)
     rows = img[idx].astype(np.float32)
     # pixel noise from vertical neighbours: the (near-vertical) stripes cancel, noise does not
     diff = rows - img[idx + 1].astype(np.float32)
@@ -262,7 +265,68 @@ def estimate_stripe_width(image: ArrayLike, *, channel: str = "red") -> float:
     w = _ridge_fwhm(rows, pixel_noise, strongest=True)
     if w is None:
         raise SlitExtractionError("estimate_stripe_width: no stripes found in image")
-    return w
+    flat = _flat_top_width(rows, w)
+    if flat is None or abs(math.log(flat / w)) < math.log(_FLAT_TOP_DISAGREEMENT):
+        return w
+    return flat
+
+
+#: Flat tops: a row's maximum is a flat top when it lies within ``_FLAT_TOP_BAND`` of the
+#: range of the sampled rows below their top and spans at least ``_FLAT_TOP_MIN_PX`` pixels
+#: (a clipped line; a JPEG rings over its top, 250-255 for 255).
+_FLAT_TOP_BAND = 0.03
+_FLAT_TOP_MIN_PX = 3
+#: Flat-topped rows needed, as a fraction of the sampled rows, to measure them directly.
+_FLAT_TOP_ROWS = 0.25
+#: The direct width of flat-topped lines replaces the scale selection's when the two differ by
+#: more than this factor: the scale selection answers at a flat top's corners (a fraction of
+#: the line's width) or at its whole plateau.
+_FLAT_TOP_DISAGREEMENT = 1.25
+
+
+def _flat_top_width(rows: NDArray[np.float32], fwhm: float) -> float | None:
+    """The median FWHM (px) of the lines whose clipping makes the maxima of ``rows`` (R, N)
+    flat tops, or None when fewer than ``_FLAT_TOP_ROWS`` of the rows have one.
+
+    A Gaussian of peak P clipped at c is flat over 2 x_c and crosses c / 2 at +-x_h, with
+    x_h^2 - x_c^2 = 2 ln 2 sigma^2 whatever P: its FWHM is 2 sqrt(x_h^2 - x_c^2). The flat
+    top is measured at the clip level, the crossing halfway between it and the local
+    background (of the lowest values within a flat-top length plus ``fwhm`` on either side,
+    the higher), both to the pixel."""
+    top, bottom = float(rows.max()), float(rows.min())
+    if top <= bottom:
+        return None
+    level = top - _FLAT_TOP_BAND * (top - bottom)
+    n = rows.shape[1]
+    widths = []
+    for row in rows:
+        k = int(np.argmax(row))
+        if row[k] < level:
+            continue
+        a = b = k
+        while a > 0 and row[a - 1] >= level:
+            a -= 1
+        while b < n - 1 and row[b + 1] >= level:
+            b += 1
+        length = b - a + 1
+        if length < _FLAT_TOP_MIN_PX:
+            continue
+        reach = length + math.ceil(fwhm)
+        left, right = row[max(0, a - reach) : a], row[b + 1 : b + 1 + reach]
+        sides = [float(x.min()) for x in (left, right) if x.size]
+        if not sides:
+            continue
+        base = max(sides)  # the brighter side: a line along a dark square's edge
+        half = 0.5 * (level + base)
+        while a > 0 and row[a - 1] >= half:
+            a -= 1
+        while b < n - 1 and row[b + 1] >= half:
+            b += 1
+        x_c, x_h = 0.5 * length, 0.5 * (b - a + 1)
+        widths.append(2.0 * math.sqrt(max(x_h * x_h - x_c * x_c, 1.0)))
+    if len(widths) < _FLAT_TOP_ROWS * len(rows):
+        return None
+    return float(np.median(widths))
 
 
 def estimate_dot_size(highpass: ArrayLike) -> float | None:
@@ -281,7 +345,7 @@ def estimate_dot_size(highpass: ArrayLike) -> float | None:
     fwhm : float (px) or None
     """
     hp = as_image(highpass, name="highpass")
-    cols = np.ascontiguousarray(hp[:, _sample(hp.shape[1], 48)].T, dtype=np.float32)
+    cols = np.ascontiguousarray(hp[:, sample_rows(hp.shape[1], 48)].T, dtype=np.float32)
     # noise from neighbours along each column: the dots are sparse there
     pixel_noise = max(
         1.4826 * float(np.median(np.abs(np.diff(cols, axis=1)))) / math.sqrt(2.0), 1e-3

@@ -14,45 +14,78 @@ class SlitExtractionError(IdentificationError):
     """Slit extraction cannot run on the given input (bad image or parameters)."""
 
 
-#: Colour channels :func:`as_image` can take from an (H, W, 3) RGB image; the first is the
-#: default (a red laser). ``"luma"`` is Rec. 601 luma, 0.299 R + 0.587 G + 0.114 B.
+#: Colour channels :func:`as_image` can take from an (H, W, 3) colour image; the first is
+#: its default (a red laser). ``"luma"`` is Rec. 601 luma, 0.299 R + 0.587 G + 0.114 B.
 CHANNELS = ("red", "green", "blue", "luma")
+#: The channel chosen from the data (:func:`~multislit.stripes.channels.choose_channel`): the
+#: plane whose stripes stand out most above their background, clipped planes avoided.
+AUTO = "auto"
+#: Every ``channel`` value of the extraction and the readers: :data:`AUTO` and the planes.
+CHANNEL_CHOICES = (AUTO, *CHANNELS)
+#: Orders of the planes of a colour array: RGB (the package's), BGR (``cv2.imread``'s).
+ORDERS = ("rgb", "bgr")
 _LUMA = (0.299, 0.587, 0.114)
 
 
-def _one_channel(arr: NDArray, channel: str, name: str) -> NDArray:
-    """The (H, W) plane ``channel`` of an (H, W, C) RGB or RGBA array, dtype kept."""
+def check_order(order: object) -> str:
+    """``order`` if it is one of :data:`ORDERS`."""
+    if order not in ORDERS:
+        raise SlitExtractionError(
+            f"order must be 'rgb' or 'bgr' (cv2.imread's arrays are BGR), got {order!r}"
+        )
+    return str(order)
+
+
+def plane_index(channel: str, order: str = "rgb") -> int:
+    """The index of colour plane ``channel`` (red, green or blue) in an array of ``order``."""
+    i = CHANNELS.index(channel)
+    return 2 - i if order == "bgr" else i
+
+
+def _one_channel(arr: NDArray, channel: str, name: str, order: str) -> NDArray:
+    """The (H, W) plane ``channel`` of an (H, W, C) RGB(A) or BGR(A) array, dtype kept."""
     if arr.shape[2] == 1:
         return arr[:, :, 0]
     if arr.shape[2] not in (3, 4):
         raise SlitExtractionError(
             f"{name} must be a 2-D (H, W) grayscale or (H, W, 3) RGB array, got shape {arr.shape}"
         )
+    if channel == AUTO:
+        raise SlitExtractionError(
+            "channel 'auto' is chosen from the image first (multislit.stripes.choose_channel); "
+            f"as_image takes one of {CHANNELS}"
+        )
     if channel not in CHANNELS:
-        raise SlitExtractionError(f"channel must be one of {CHANNELS}, got {channel!r}")
+        raise SlitExtractionError(f"channel must be one of {CHANNEL_CHOICES}, got {channel!r}")
+    check_order(order)
     if channel != "luma":
-        return arr[:, :, CHANNELS.index(channel)]
+        return arr[:, :, plane_index(channel, order)]
     if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
         return arr[:, :, 0]  # the dtype check below names the problem
-    y = arr[:, :, 0] * _LUMA[0] + arr[:, :, 1] * _LUMA[1] + arr[:, :, 2] * _LUMA[2]
+    r, g, b = (arr[:, :, plane_index(c, order)] for c in ("red", "green", "blue"))
+    y = r * _LUMA[0] + g * _LUMA[1] + b * _LUMA[2]
     if np.issubdtype(arr.dtype, np.integer):
         info = np.iinfo(arr.dtype)
         return np.clip(np.rint(y), info.min, info.max).astype(arr.dtype)
     return y
 
 
-def as_image(image: ArrayLike, *, name: str = "image", channel: str = "red") -> NDArray:
+def as_image(
+    image: ArrayLike, *, name: str = "image", channel: str = "red", order: str = "rgb"
+) -> NDArray:
     """Check an image argument and return it as one plane in a dtype the pipeline works in.
 
     Parameters
     ----------
-    image : (H, W) grayscale or (H, W, 3) colour array (RGB order; an (H, W, 4) RGBA array's
-        alpha is ignored), uint8, uint16, any other integer or float dtype. Arrays from
-        ``cv2.imread`` are BGR: pass ``img[..., ::-1]``.
+    image : (H, W) grayscale or (H, W, 3) colour array (an (H, W, 4) array's alpha is
+        ignored), uint8, uint16, any other integer or float dtype
     name : the argument's name, used in error messages; default ``"image"``
-    channel : the plane of a colour image, one of :data:`CHANNELS`; default ``"red"`` (the
-        laser's colour: on a red laser's line the red channel has the most contrast); ignored
-        for a grayscale image
+    channel : the plane of a colour image, one of :data:`CHANNELS`; default ``"red"``; ignored
+        for a grayscale image. (The extraction's ``channel="auto"`` is resolved before, by
+        :func:`~multislit.stripes.channels.choose_channel`.)
+    order : {'rgb', 'bgr'}
+        The order of a colour image's planes: ``"bgr"`` for arrays from ``cv2.imread``.
+        Default ``"rgb"``.
 
     Returns
     -------
@@ -63,11 +96,12 @@ def as_image(image: ArrayLike, *, name: str = "image", channel: str = "red") -> 
     ------
     SlitExtractionError
         (a ``ValueError``) if ``image`` is neither (H, W) nor (H, W, 3|4), is empty, is boolean
-        or not numeric, or holds NaN or infinite values, or ``channel`` is unknown.
+        or not numeric, or holds NaN or infinite values, or ``channel`` or ``order`` is
+        unknown.
     """
     arr = np.asarray(image)
     if arr.ndim == 3:
-        arr = _one_channel(arr, channel, name)
+        arr = _one_channel(arr, channel, name, order)
     if arr.ndim != 2:
         raise SlitExtractionError(
             f"{name} must be a 2-D (H, W) grayscale or (H, W, 3) RGB array, got shape {arr.shape}"
