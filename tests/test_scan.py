@@ -244,3 +244,30 @@ def test_full_size_plane_scan_within_a_tenth_of_a_mm(tmp_path):
     assert r.num_points > 20000
     assert np.sqrt(np.mean(d**2)) < 0.1
     assert abs(np.mean(d)) < 0.02
+
+
+def test_results_print_as_a_short_summary(cap_dir, scans):
+    """``print(result)`` shows a few lines of figures and ``repr`` one line, not the arrays
+    (a notebook echoes a result by its repr)."""
+    from multislit.calibrate import Calibration
+    from multislit.stripes import extract_slits, separate
+
+    cap = Capture.open(cap_dir)
+    img = cap.image(cap_dir / "scans" / "holes.png")
+    results = [
+        scans["holes"],
+        measure_holes_from_points(scans["holes"]),
+        Calibration.load(cap_dir / "calibration.json"),
+        extract_slits(img),
+        separate(img),
+    ]
+    holes = results[1]
+    assert holes.holes
+    results.append(holes.holes[0])
+    for res in results:
+        text, line = str(res), repr(res)
+        assert "array(" not in text and "array(" not in line, type(res).__name__
+        assert len(text) < 2000 and text.count("\n") <= 12, (type(res).__name__, text)
+        assert "\n" not in line and line.startswith(f"<{type(res).__name__} ")
+    assert "measurable hole(s)" in str(holes) and "hole 1:" in str(holes)
+    assert "slit planes" in str(results[2]) and "stripe centres" in str(results[3])

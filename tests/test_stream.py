@@ -763,3 +763,32 @@ def test_a_run_of_unusable_frames_exits_2_with_the_reason(calibrated: Path, tmp_
     argv = ["stream", str(calibrated), str(tmp_path / "green"), "-o", str(out)]
     assert main([*argv, "--channel", "green"]) == 0
     assert _index(out)[0]["points"] > 1000
+
+
+@pytest.mark.slow
+def test_pictures_and_run_record(calibrated: Path, frames_dir: Path, tmp_path: Path):
+    """``--pictures`` writes each frame's picture beside its PLY (stream, two workers, and
+    scan); ``run.json`` says how the run was made; the view finds the calibration there."""
+    from multislit.app.index import RUN_FILE
+    from multislit.app.view import find_calibration
+
+    out = tmp_path / "out"
+    argv = ["stream", str(calibrated), str(frames_dir), "-o", str(out), "--pictures"]
+    assert main([*argv, "--workers", "2", "--max-frames", "2"]) == 0
+    for i in range(2):
+        pic = cv2.imread(str(out / f"frame_{i:06d}.png"))
+        assert pic.shape == (512, 640, 3)
+        magenta = np.all(pic == (255, 0, 255), axis=2).sum()
+        coloured = (pic.max(axis=2).astype(int) - pic.min(axis=2) > 60).sum()
+        assert coloured > 2 * magenta > 0  # the points by slit, and the centres left out
+    run = json.loads((out / RUN_FILE).read_text())
+    assert run["command"] == "stream" and run["format"] == "multislit-run/1"
+    assert run["capture"] == str(calibrated.resolve())
+    assert run["calibration"] == str((calibrated / "calibration.json").resolve())
+    assert run["source"] == str(frames_dir) and run["settings"]["channel"] == "auto"
+    assert find_calibration(out) == calibrated.resolve() / "calibration.json"
+    pts = tmp_path / "pts"
+    assert main(["scan", str(calibrated), "-o", str(pts), "--pictures"]) == 0
+    assert sorted(p.name for p in pts.iterdir()) == sorted(
+        ["holes.ply", "holes.png", "steps.ply", "steps.png"]
+    )

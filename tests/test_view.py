@@ -149,3 +149,95 @@ def test_points_with_nan_are_left_out_of_the_colour_range(tmp_path: Path):
     cmax = re.findall(r'"cmax":([^,}]+)', html)
     assert cmin and cmax and "null" not in cmin + cmax, (cmin, cmax)
     assert "-6.0" in cmin and "9.0" in cmax  # the finite points' depth range
+
+
+# --------------------------------------------------------------------------- viewpoint, pictures
+def _seen_cloud(cal, n=3000, seed=0):
+    """Points on two surfaces in front of the calibration's camera, with the image position
+    each is seen at: (N, 3) mm and (N, 2) px."""
+    rng = np.random.default_rng(seed)
+    w, h = cal.image_size
+    uv = np.stack([rng.uniform(0, w, n), rng.uniform(0, h, n)], axis=1)
+    origin, ray = cal.camera.rays(uv)
+    depth = np.where(uv[:, 0] < w / 2, 800.0, 950.0) + 40 * np.sin(uv[:, 1] / 60)
+    centre = np.asarray(cal.camera.centre)
+    t = (depth - 0.0) / np.linalg.norm(ray, axis=1)
+    xyz = centre + ray * t[:, None]
+    return xyz, cal.camera.project(xyz)
+
+
+def _scene_camera(page: str) -> dict:
+    m = re.search(r'"camera":(\{"eye":\{[^}]*\},"up":\{[^}]*\},"center":\{[^}]*\}\})', page)
+    assert m, "the page has no camera viewpoint"
+    return json.loads(m.group(1))
+
+
+def test_page_opens_from_the_cameras_viewpoint(tmp_path: Path):
+    from tests.test_calibration import _calibration
+
+    cal = _calibration()
+    xyz, uv = _seen_cloud(cal)
+    ply = tmp_path / "scan.ply"
+    write_ply(ply, xyz, u=uv[:, 0], v=uv[:, 1], slit=np.zeros(len(xyz), np.int64))
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    want = (np.asarray(cal.camera.centre) - 0.5 * (lo + hi)) / np.max(hi - lo)
+    w, h = cal.image_size
+    _, rays = cal.camera.rays(np.array([[w / 2, 0.0], [w / 2, h]]))
+    up = (rays[0] - rays[1]) / np.linalg.norm(rays[0] - rays[1])
+    # the calibration, or a camera matrix fitted to u v and x y z (no lens distortion in it:
+    # close, not exact)
+    for calibration, tol_deg, tol in ((cal, 0.1, 0.001), (None, 3.0, 0.1)):
+        page = write_view(ply, tmp_path / "v.html", calibration=calibration).read_text()
+        cam = _scene_camera(page)
+        eye = np.array([cam["eye"][k] for k in "xyz"])
+        got_up = np.array([cam["up"][k] for k in "xyz"])
+        cos = eye @ want / np.linalg.norm(eye) / np.linalg.norm(want)
+        assert np.degrees(np.arccos(min(cos, 1.0))) < tol_deg, (eye, want)
+        assert abs(np.linalg.norm(eye) / np.linalg.norm(want) - 1) < tol
+        assert np.degrees(np.arccos(min(got_up @ up, 1.0))) < tol_deg
+        assert "seen from the camera" in page
+    cal.save(tmp_path / "cal.json")  # by file, on the command line
+    argv = ["view", str(ply), "-o", str(tmp_path / "c.html"), "--calibration"]
+    assert main([*argv, str(tmp_path / "cal.json")]) == 0
+    assert "seen from the camera: cal.json" in (tmp_path / "c.html").read_text()
+    flat = tmp_path / "flat.ply"  # one plane and no calibration: Plotly's own view
+    write_ply(flat, xyz * [1, 1, 0], u=uv[:, 0], v=uv[:, 1])
+    assert '"camera":{"eye"' not in write_view(flat, tmp_path / "f.html").read_text()
+
+
+def test_pictures_shown_beside_the_plot(tmp_path: Path):
+    out = _out_folder(tmp_path, frames=3, n=500)
+    for i in (0, 2):
+        img = np.full((60, 80, 3), 40 * (i + 1), np.uint8)
+        cv2.imwrite(str(out / f"frame_{i:06d}.png"), img)
+    page = write_view(out, tmp_path / "v.html").read_text()
+    assert 'id="picture"' in page and "plotly_sliderchange" in page
+    pictures = json.loads(re.search(r"const pictures = (\[.*?\]);", page).group(1))
+    assert [p.startswith("data:image/jpeg;base64,") for p in pictures] == [True, False, True]
+    assert len(set(pictures)) == 3  # each frame its own
+    (tmp_path / "bare").mkdir()
+    bare = _out_folder(tmp_path / "bare", frames=1, n=50)
+    assert 'id="picture"' not in write_view(bare, tmp_path / "b.html").read_text()
+
+
+def test_scan_picture_marks_points_by_slit_and_those_left_out(tmp_path: Path):
+    from multislit.app.pictures import LEFT_OUT_BGR, scan_picture
+    from multislit.reconstruct import ScanResult
+
+    h, w = 120, 160
+    rng = np.random.default_rng(1)
+    u = rng.uniform(5, w - 5, 400)
+    v = rng.uniform(5, h - 5, 400)
+    slit = np.where(np.arange(400) < 300, (u // 20).astype(np.int64), -1)  # 100 left out
+    ply = tmp_path / "s.ply"
+    write_ply(ply, np.c_[u, v, u * 0], u=u, v=v, slit=slit)
+    res = ScanResult.from_ply(ply)
+    pic = scan_picture(np.full((h, w), 100, np.uint8), res, num_slits=8)
+    assert pic.shape == (h, w, 3) and pic.dtype == np.uint8
+    magenta = np.all(pic == LEFT_OUT_BGR, axis=2)
+    assert magenta[np.rint(v[300:]).astype(int), np.rint(u[300:]).astype(int)].mean() > 0.8
+    kept = pic[np.rint(v[:300]).astype(int), np.rint(u[:300]).astype(int)]
+    assert len({tuple(c) for c in kept}) >= 6  # the slits in their own colours
+    assert not np.all(kept == LEFT_OUT_BGR, axis=1).any()
+    with pytest.raises(MeasurementError, match="ScanResult"):
+        scan_picture(np.zeros((h, w), np.uint8), "not a result")

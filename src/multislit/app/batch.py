@@ -33,6 +33,7 @@ from multislit.app.stream import (
     laser_channel,
     precompute_reference,
     run_frames,
+    run_record,
     scan_frame,
 )
 from multislit.errors import CaptureError, MeasurementError
@@ -153,8 +154,11 @@ class DaskRunner:
     reference, calibration : the capture's prepared reference set and calibration
     """
 
-    def __init__(self, client: Any, reference: Any, calibration: Any) -> None:
+    def __init__(
+        self, client: Any, reference: Any, calibration: Any, *, pictures: bool = False
+    ) -> None:
         self.client = client
+        self.pictures = bool(pictures)
         workers = max(1, len(client.scheduler_info().get("workers", {})))
         self.capacity = _INFLIGHT_PER_WORKER * workers
         self._ref = client.scatter(precompute_reference(reference), broadcast=True)
@@ -164,7 +168,9 @@ class DaskRunner:
         # hash=False: frames alike (a static or dark scene) get keys of their own; with content
         # keys one finished frame releases the data that a later, equal one still needs
         img = self.client.scatter(image, hash=False)
-        return self.client.submit(scan_frame, img, self._ref, self._cal, name=name, pure=False)
+        return self.client.submit(
+            scan_frame, img, self._ref, self._cal, name=name, picture=self.pictures, pure=False
+        )
 
     def done(self, handle: Any) -> bool:
         return handle.done()
@@ -190,6 +196,7 @@ def batch(
     channel: str | None = None,
     calibration: str | os.PathLike[str] | None = None,
     overwrite: bool = False,
+    pictures: bool = False,
     progress: Callable[..., None] | None = None,
 ) -> StreamSummary:
     """Scan the frames of ``source`` on a Dask cluster and write ``out`` like ``stream``.
@@ -197,7 +204,7 @@ def batch(
     Parameters
     ----------
     capture, source, out, max_frames, every, on_bad_frame, channel, calibration, overwrite,
-    progress :
+    pictures, progress :
         As :func:`multislit.app.stream.stream`.
     address : str, optional
         The Dask scheduler (``tcp://host:8786``). Default: a local cluster for this run.
@@ -220,6 +227,13 @@ def batch(
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)
     src = open_source(source, channel=laser_channel(cap, channel), every=every)
+    writer.run = run_record(
+        "batch",
+        cap,
+        calibration,
+        source,
+        {"channel": laser_channel(cap, channel), "every": every, "dask": address},
+    )
     cluster = client = None
     try:
         if address is not None:
@@ -251,7 +265,7 @@ def batch(
         return run_frames(
             src,
             writer,
-            DaskRunner(client, ref, cal),
+            DaskRunner(client, ref, cal, pictures=pictures),
             image_size=cap.image_size,
             max_frames=max_frames,
             on_bad_frame=on_bad_frame,

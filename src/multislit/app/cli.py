@@ -175,8 +175,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_scan(args: argparse.Namespace) -> int:
+    from multislit.app.pictures import encode_png, scan_picture
     from multislit.errors import MeasurementError
-    from multislit.io import Capture
+    from multislit.io import Capture, write_bytes_atomic
     from multislit.reconstruct import scan_capture
 
     outdir = check_output_dir(args.output, "-o") if args.output is not None else None
@@ -193,7 +194,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         if args.calibration is not None
         else cap.root / "calibration.json"
     )
-    outputs = [outdir / f"{p.stem}.ply" for p in (images or cap.scans)]
+    outputs = [outdir / f"{p.stem}{ext}" for p in (images or cap.scans) for ext in (".ply", ".png")]
     _refuse_inputs(outputs, [*_capture_files(cap), *(images or []), cal_file], "-o")
     results = scan_capture(
         cap,
@@ -203,11 +204,15 @@ def cmd_scan(args: argparse.Namespace) -> int:
     )
     outdir.mkdir(parents=True, exist_ok=True)
     failed = []
+    paths = {p.stem: p for p in (images or cap.scans)}
     for name, res in results.items():
         if res.num_points == 0:
             failed.append(f"{name}: {res.message or 'no points'}")
             continue
         path = res.write_ply(outdir / f"{name}.ply", comment=f"multislit scan {name}")
+        if args.pictures:
+            picture = scan_picture(cap.image(paths[name]), res, num_slits=cap.num_slits)
+            write_bytes_atomic(outdir / f"{name}.png", encode_png(picture))
         print(f"{res.summary()} -> {path}")
     if failed:
         raise MeasurementError(
@@ -247,21 +252,8 @@ def cmd_holes(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({k: m.to_dict() for k, m in measurements.items()}, indent=1))
         return 0
-    for name, m in measurements.items():
-        print(
-            f"{name}: plate plane RMS {m.plane_rms:.3f} mm, {len(m.edges)} edge points "
-            f"({m.method}), {len(m.measurable)} measurable hole(s)"
-        )
-        for i, h in enumerate(m.holes, 1):
-            c = ", ".join(f"{x:.2f}" for x in h.centre)
-            if h.measurable:
-                print(
-                    f"  hole {i}: centre ({c}) mm, diameter {h.diameter:.2f} mm, "
-                    f"{h.n_inliers}/{h.n_points} edge points, {h.n_slits} slits, "
-                    f"fit RMS {h.rms:.3f} mm"
-                )
-            else:
-                print(f"  hole {i}: near ({c}) mm, not measurable: {h.reason}")
+    for m in measurements.values():
+        print(m.summary())
     return 0
 
 
@@ -287,6 +279,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         workers=args.workers,
         camera_features=_camera_features(args.pylon),
         prior=args.prior,
+        pictures=args.pictures,
         progress=ProgressLine("stream: "),
         **_frame_settings(args),
     )
@@ -304,6 +297,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
         args.output,
         address=args.dask,
         workers=args.workers,
+        pictures=args.pictures,
         progress=ProgressLine("batch: "),
         **_frame_settings(args),
     )
@@ -314,9 +308,21 @@ def cmd_batch(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     from multislit.app.view import write_view
 
-    path = write_view(args.source, args.output, color=args.color, max_points=args.max_points)
+    path = write_view(
+        args.source,
+        args.output,
+        color=args.color,
+        max_points=args.max_points,
+        calibration=args.calibration,
+    )
     print(f"wrote {path}")
     return 0
+
+
+_PICTURES_HELP = (
+    "write beside each PLY a picture (NAME.png): the frame with the stripe points coloured by "
+    "slit and the stripe centres left out in magenta"
+)
 
 
 def _frame_options(p: argparse.ArgumentParser) -> None:
@@ -346,6 +352,7 @@ def _frame_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
     p.add_argument("--overwrite", action="store_true", help="replace frames already in OUT")
+    p.add_argument("--pictures", action="store_true", help=_PICTURES_HELP)
 
 
 def _frame_settings(args: argparse.Namespace) -> dict:
@@ -425,6 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("-o", "--output", help="folder for the PLY files (default CAPTURE/points)")
     sc.add_argument("--image", help="scan only this image (default: every scans/*.png)")
     sc.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
+    sc.add_argument("--pictures", action="store_true", help=_PICTURES_HELP)
     sc.set_defaults(func=cmd_scan)
 
     ho = sub.add_parser("holes", help="measure holes in a flat plate (paper Table 1)")
@@ -472,6 +480,11 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--color", choices=["depth", "slit"], default="depth", help="initial colouring")
     vw.add_argument(
         "--max-points", type=int, default=50000, help="points drawn per frame (default 50000)"
+    )
+    vw.add_argument(
+        "--calibration",
+        help="the rig's calibration: the page opens from its camera's viewpoint (default: the "
+        "capture's beside a scan's PLY, or the one OUT/run.json names)",
     )
     vw.set_defaults(func=cmd_view)
 

@@ -3,6 +3,7 @@
 ::
 
     OUT/frame_000000.ply   one PLY per frame
+    OUT/frame_000000.png   its picture (with --pictures): the points on the frame
     OUT/frames.jsonl       one JSON object per line and frame: frame, source, points, slits,
                            ms, and message where the scan left a note (e.g. why no points)
     OUT/run.json           how the run was made (written by stream and batch)
@@ -21,12 +22,14 @@ from multislit.errors import MeasurementError, MultislitError
 from multislit.io import parse_json
 from multislit.io.paths import as_path, is_regular_file
 
-__all__ = ["INDEX_FILE", "RUN_FILE", "frame_file", "read_index"]
+__all__ = ["INDEX_FILE", "RUN_FILE", "RUN_FORMAT", "frame_file", "picture_file", "read_index"]
 
 #: The index of an OUT folder.
 INDEX_FILE = "frames.jsonl"
 #: How a run was made (options, capture, source), beside the index.
 RUN_FILE = "run.json"
+#: The format of ``run.json``.
+RUN_FORMAT = "multislit-run/1"
 #: The largest index read, bytes (about ten million frames).
 _MAX_INDEX_BYTES = 2**30
 
@@ -34,6 +37,11 @@ _MAX_INDEX_BYTES = 2**30
 def frame_file(frame: int) -> str:
     """The PLY file name of output frame ``frame``: ``frame_000000.ply``."""
     return f"frame_{frame:06d}.ply"
+
+
+def picture_file(frame: int) -> str:
+    """The picture's file name of output frame ``frame``: ``frame_000000.png``."""
+    return f"frame_{frame:06d}.png"
 
 
 def read_index(path: str | os.PathLike[str]) -> list[dict[str, Any]]:

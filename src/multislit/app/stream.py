@@ -30,6 +30,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -37,14 +38,21 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit.app.index import INDEX_FILE, frame_file
+from multislit import __version__
+from multislit.app.index import INDEX_FILE, RUN_FILE, RUN_FORMAT, frame_file, picture_file
+from multislit.app.pictures import encode_png, scan_picture
 from multislit.calibrate import Calibration
 from multislit.errors import CaptureError, MeasurementError, MultislitError
 from multislit.identify import ReferenceSet, capture_reference, prepare_scoring
-from multislit.io import Capture, json_safe, write_ply
+from multislit.io import Capture, json_safe, write_bytes_atomic, write_json, write_ply
 from multislit.io.paths import as_path, check_output_dir
 from multislit.io.sources import FrameSource, open_source
-from multislit.reconstruct import ScanResult, load_capture_calibration, scan_image
+from multislit.reconstruct import (
+    CALIBRATION_FILE,
+    ScanResult,
+    load_capture_calibration,
+    scan_image,
+)
 
 __all__ = [
     "FrameResult",
@@ -81,6 +89,8 @@ class FrameResult:
     slits : int, distinct slits among the points
     ms : float, ms, time to scan the frame
     message : str, why the frame gave no points or another note of the scan; '' if none
+    picture : bytes, PNG of :func:`~multislit.app.pictures.scan_picture` (the points on the
+        frame) when asked for; b'' otherwise
     """
 
     points: NDArray[np.float64]
@@ -91,10 +101,16 @@ class FrameResult:
     slits: int
     ms: float
     message: str = ""
+    picture: bytes = b""
 
 
 def scan_frame(
-    image: NDArray, reference: ReferenceSet, calibration: Calibration, *, name: str = ""
+    image: NDArray,
+    reference: ReferenceSet,
+    calibration: Calibration,
+    *,
+    name: str = "",
+    picture: bool = False,
 ) -> FrameResult:
     """Scan one frame with :func:`multislit.scan_image` (the settings of ``multislit scan``).
 
@@ -103,8 +119,12 @@ def scan_frame(
     image : (H, W) uint8 or uint16, the calibrated size
     reference, calibration : the capture's prepared reference set and calibration
     name : str, a name for messages. Default ''.
+    picture : bool
+        Draw the frame's picture (:func:`~multislit.app.pictures.scan_picture`) into the
+        result. Default False.
     """
-    return _frame_result(*_timed_scan(image, reference, calibration, name, None))
+    res, ms = _timed_scan(image, reference, calibration, name, None)
+    return _frame_result(res, ms, image if picture else None, reference.num_slits)
 
 
 def _timed_scan(
@@ -119,9 +139,23 @@ def _timed_scan(
     return res, (time.perf_counter() - t0) * 1000.0
 
 
-def _frame_result(res: ScanResult, ms: float) -> FrameResult:
+def _frame_result(
+    res: ScanResult, ms: float, image: NDArray | None = None, num_slits: int | None = None
+) -> FrameResult:
+    """The frame's result; with ``image``, its picture too (slit colours over ``num_slits``)."""
+    picture = b""
+    if image is not None:
+        picture = encode_png(scan_picture(image, res, num_slits=num_slits))
     return FrameResult(
-        res.points, res.u, res.v, res.slit, res.confidence, res.num_slits_found, ms, res.message
+        res.points,
+        res.u,
+        res.v,
+        res.slit,
+        res.confidence,
+        res.num_slits_found,
+        ms,
+        res.message,
+        picture,
     )
 
 
@@ -136,9 +170,13 @@ class FrameWriter:
     ----------
     out : folder (created at the first frame if needed)
     overwrite : bool
-        Remove the frames and index already in ``out`` (``frame_NNNNNN.ply``, the index and
-        the temporary files of a killed run; no other file) when the first frame is written;
-        without it, a folder that holds frames is refused. Default False.
+        Remove the frames and index already in ``out`` (``frame_NNNNNN.ply`` and ``.png``, the
+        index, ``run.json`` and the temporary files of a killed run; no other file) when the
+        first frame is written; without it, a folder that holds frames is refused. Default
+        False.
+    run : dict, optional
+        How the run is made (capture, calibration, source, options), written to ``run.json``
+        beside the index with the first frame. Default: no ``run.json``.
 
     Raises
     ------
@@ -147,7 +185,13 @@ class FrameWriter:
         ``overwrite``).
     """
 
-    def __init__(self, out: str | os.PathLike[str], *, overwrite: bool = False) -> None:
+    def __init__(
+        self,
+        out: str | os.PathLike[str],
+        *,
+        overwrite: bool = False,
+        run: dict[str, Any] | None = None,
+    ) -> None:
         try:
             self.out = check_output_dir(out, "-o")
         except MultislitError as exc:
@@ -159,6 +203,7 @@ class FrameWriter:
                 "empty folder or --overwrite"
             )
         self._old = old
+        self.run = run
         self._fd = -1
         self._closed = False
         self.frames = 0
@@ -169,6 +214,8 @@ class FrameWriter:
             self.out.mkdir(parents=True, exist_ok=True)
             for p in [*self._old, *_frame_files(self.out, temporary=True)]:
                 p.unlink(missing_ok=True)
+            if self.run is not None:
+                write_json(self.out / RUN_FILE, self.run)
             self._fd = os.open(
                 self.out / INDEX_FILE, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_TRUNC, 0o644
             )
@@ -184,6 +231,8 @@ class FrameWriter:
             self._open()
         path = self.out / frame_file(self.frames)
         label = " ".join(str(source).split())
+        if result.picture:
+            write_bytes_atomic(self.out / picture_file(self.frames), result.picture)
         write_ply(
             path,
             result.points,
@@ -215,10 +264,10 @@ class FrameWriter:
             self._fd = -1
 
 
-#: The files of an OUT folder that a run writes: its frames and index; with ``temporary``,
-#: the temporary files of a killed write (``.frame_000000.ply.XXXX.tmp``).
-_FRAME_NAME = re.compile(r"frame_\d{6,}\.ply")
-_TEMPORARY_NAME = re.compile(r"\.frame_\d{6,}\.ply\..+\.tmp")
+#: The files of an OUT folder that a run writes: its frames, pictures, index and run record;
+#: with ``temporary``, the temporary files of a killed write (``.frame_000000.ply.XXXX.tmp``).
+_FRAME_NAME = re.compile(r"frame_\d{6,}\.(ply|png)")
+_TEMPORARY_NAME = re.compile(r"\.(frame_\d{6,}\.(ply|png)|run\.json)\..+\.tmp")
 
 
 def _frame_files(out: Path, *, temporary: bool = False) -> list[Path]:
@@ -227,8 +276,8 @@ def _frame_files(out: Path, *, temporary: bool = False) -> list[Path]:
         return []
     pattern = _TEMPORARY_NAME if temporary else _FRAME_NAME
     found = sorted(p for p in out.iterdir() if pattern.fullmatch(p.name))
-    if not temporary and (out / INDEX_FILE).exists():
-        found.append(out / INDEX_FILE)
+    if not temporary:
+        found += [out / name for name in (INDEX_FILE, RUN_FILE) if (out / name).exists()]
     return found
 
 
@@ -254,16 +303,22 @@ class InlineRunner:
     capacity = 1
 
     def __init__(
-        self, reference: ReferenceSet, calibration: Calibration, *, prior: bool = False
+        self,
+        reference: ReferenceSet,
+        calibration: Calibration,
+        *,
+        prior: bool = False,
+        pictures: bool = False,
     ) -> None:
         self.reference, self.calibration, self.prior = reference, calibration, bool(prior)
+        self.pictures = bool(pictures)
         self._last: ScanResult | None = None
 
     def submit(self, image: NDArray, name: str) -> FrameResult:
         res, ms = _timed_scan(image, self.reference, self.calibration, name, self._last)
         if self.prior:
             self._last = res
-        return _frame_result(res, ms)
+        return _frame_result(res, ms, image if self.pictures else None, self.reference.num_slits)
 
     def done(self, handle: FrameResult) -> bool:
         return True
@@ -294,29 +349,40 @@ def _watch_parent(parent: int) -> None:
     os._exit(1)
 
 
-def _init_worker(reference: ReferenceSet, calibration: Calibration, parent: int) -> None:
+def _init_worker(
+    reference: ReferenceSet, calibration: Calibration, parent: int, pictures: bool
+) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     threading.Thread(target=_watch_parent, args=(parent,), name="parent", daemon=True).start()
     cv2.setNumThreads(1)  # a core per worker process: the processes are the parallelism
     _WORKER["reference"], _WORKER["calibration"] = reference, calibration
+    _WORKER["pictures"] = pictures
 
 
 def _scan_in_worker(image: NDArray, name: str) -> FrameResult:
-    return scan_frame(image, _WORKER["reference"], _WORKER["calibration"], name=name)
+    return scan_frame(
+        image, _WORKER["reference"], _WORKER["calibration"], name=name, picture=_WORKER["pictures"]
+    )
 
 
 class ProcessRunner:
     """Scans frames in ``workers`` processes; the reference and calibration go to each once."""
 
     def __init__(
-        self, reference: ReferenceSet, calibration: Calibration, workers: int, *, live: bool
+        self,
+        reference: ReferenceSet,
+        calibration: Calibration,
+        workers: int,
+        *,
+        live: bool,
+        pictures: bool = False,
     ) -> None:
         self.capacity = workers if live else _INFLIGHT_PER_WORKER * workers
         self._pool = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(precompute_reference(reference), calibration, os.getpid()),
+            initargs=(precompute_reference(reference), calibration, os.getpid(), bool(pictures)),
         )
 
     def submit(self, image: NDArray, name: str) -> Future:
@@ -517,6 +583,28 @@ def _nothing_usable(name: str, s: StreamSummary, first_skip: str, first_empty: s
 
 
 # --------------------------------------------------------------------------- stream
+def run_record(
+    command: str,
+    capture: Capture,
+    calibration: str | os.PathLike[str] | None,
+    source: str | os.PathLike[str],
+    settings: dict[str, Any],
+) -> dict[str, Any]:
+    """What ``run.json`` says of a run: the command, the package's version, when it started,
+    the capture and calibration (absolute paths), the SOURCE and the run's settings."""
+    cal = Path(calibration) if calibration is not None else capture.root / CALIBRATION_FILE
+    return {
+        "format": RUN_FORMAT,
+        "command": command,
+        "version": __version__,
+        "started": datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z"),
+        "capture": os.fsdecode(capture.root.resolve()),
+        "calibration": os.fsdecode(cal.resolve()),
+        "source": os.fsdecode(os.fspath(source)),
+        "settings": settings,
+    }
+
+
 def laser_channel(capture: Capture, channel: str | None) -> str:
     """``channel`` if given, else the capture's (:attr:`~multislit.io.Capture.laser_channel`:
     rig.json's ``laser_channel``, else auto)."""
@@ -567,6 +655,7 @@ def stream(
     camera_features: Sequence[tuple[str, str]] = (),
     overwrite: bool = False,
     prior: bool = False,
+    pictures: bool = False,
     progress: Callable[..., None] | None = None,
 ) -> StreamSummary:
     """Scan every frame of ``source`` and write ``out`` (see the module's text).
@@ -599,6 +688,10 @@ def stream(
         slit numbers; confidences are measured against the neighbouring slits, so a few
         points can differ from a single-image scan. Needs ``workers`` 1 (frames in order).
         Default False.
+    pictures : bool
+        Write beside each frame's PLY its picture, ``frame_000000.png``: the frame with the
+        stripe points coloured by slit and the stripe centres left out in magenta
+        (:func:`~multislit.app.pictures.scan_picture`). Default False.
     progress : see :func:`run_frames`
 
     Raises
@@ -623,13 +716,20 @@ def stream(
         image_size=cap.image_size,
         features=camera_features,
     )
+    writer.run = run_record(
+        "stream",
+        cap,
+        calibration,
+        source,
+        {"channel": laser_channel(cap, channel), "every": every, "prior": prior},
+    )
     runner = None
     try:
         ref = capture_reference(cap)
         if workers == 1:
-            runner = InlineRunner(ref, cal, prior=prior)
+            runner = InlineRunner(ref, cal, prior=prior, pictures=pictures)
         else:
-            runner = ProcessRunner(ref, cal, workers, live=src.live)
+            runner = ProcessRunner(ref, cal, workers, live=src.live, pictures=pictures)
         return run_frames(
             src,
             writer,

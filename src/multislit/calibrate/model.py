@@ -24,13 +24,14 @@ from multislit.geometry import MatrixCamera, PinholeCamera, camera_from_dict
 from multislit.geometry.camera import F64
 from multislit.io import json_safe, parse_json, read_json, write_text_atomic
 from multislit.io.paths import as_path
+from multislit.summaries import Summarised
 
 #: The schema name of the calibration JSON.
 SCHEMA = "multislit-calibration/1"
 
 
-@dataclass(frozen=True, eq=False)
-class Calibration:
+@dataclass(frozen=True, eq=False, repr=False)
+class Calibration(Summarised):
     """A complete rig calibration (``multislit-calibration/1``).
 
     Attributes
@@ -70,6 +71,22 @@ class Calibration:
     def camera(self) -> PinholeCamera | MatrixCamera:
         """The refined camera if present, else the DLT camera."""
         return self.refined if self.refined is not None else self.dlt
+
+    def summary(self) -> str:
+        """One line: image size, camera model and residual, slit planes."""
+        w, h = self.image_size
+        model = "pinhole with distortion" if self.refined is not None else "DLT matrix"
+        planes = "no slit planes"
+        if self.slit_planes is not None:
+            p = self.slit_planes.planes
+            ok = np.isfinite(p).all(axis=1)
+            rms = self.slit_rms_mm[ok]
+            median = f", RMS median {np.median(rms):.4f} mm" if rms.size else ""
+            planes = f"{int(ok.sum())} of {len(p)} slit planes{median}"
+        return (
+            f"{w}x{h} px, camera {model} (RMS {self.camera_rms_px:.3f} px on "
+            f"{len(self.marker_ids)} markers), {planes}"
+        )
 
     @property
     def slit_rms_mm(self) -> F64:

@@ -61,6 +61,7 @@ from multislit.calibrate.slit_points import (
 from multislit.errors import CalibrationError, CaptureError, ReferenceImageError
 from multislit.identify import ReferenceSet, capture_reference
 from multislit.io import Capture, json_safe, write_json
+from multislit.summaries import Summarised
 
 _SOURCES = ("auto", "hand")
 
@@ -72,8 +73,8 @@ _MIN_VIEW_ANGLE_DEG = 2.0
 _MAX_READING_SPACING = 0.25
 
 
-@dataclass(frozen=True, eq=False)
-class CalibrationResult:
+@dataclass(frozen=True, eq=False, repr=False)
+class CalibrationResult(Summarised):
     """Everything :func:`calibrate_capture` found: the calibration and its report data.
 
     Attributes
@@ -99,6 +100,10 @@ class CalibrationResult:
     boards: BoardPoints | None = None
     origin: tuple[str, ...] = ()
     reference: ReferenceSet | None = None
+
+    def summary(self) -> str:
+        """The report's lines (:func:`format_report`)."""
+        return "\n".join(format_report(self))
 
     def report(self) -> dict[str, Any]:
         """Figures for people (and the ``report`` key of the written file)."""

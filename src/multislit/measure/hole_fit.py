@@ -32,6 +32,7 @@ from multislit.geometry import (
 )
 from multislit.io import json_safe
 from multislit.measure.edges import check_labels
+from multislit.summaries import Summarised
 
 F64 = NDArray[np.float64]
 
@@ -39,8 +40,8 @@ __all__ = ["HoleResult", "fit_holes"]
 
 
 # --------------------------------------------------------------------------- holes
-@dataclass(frozen=True, eq=False)
-class HoleResult:
+@dataclass(frozen=True, eq=False, repr=False)
+class HoleResult(Summarised):
     """One hole found among the edge points.
 
     Attributes
@@ -80,6 +81,17 @@ class HoleResult:
     measurable: bool
     reason: str
     indices: NDArray[np.int64] = field(repr=False)
+
+    def summary(self) -> str:
+        """One line: centre and diameter with the fit's figures, or why it is not measurable."""
+        c = ", ".join(f"{x:.2f}" for x in self.centre)
+        if not self.measurable:
+            return f"near ({c}) mm, not measurable: {self.reason}"
+        slits = f", {self.n_slits} slits" if self.n_slits is not None else ""
+        return (
+            f"centre ({c}) mm, diameter {self.diameter:.2f} mm, {self.n_inliers}/"
+            f"{self.n_points} edge points{slits}, fit RMS {self.rms:.3f} mm"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """The result as JSON-ready values (NaN as None; no indices)."""

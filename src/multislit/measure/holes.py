@@ -28,6 +28,7 @@ from multislit.identify import ReferenceSet
 from multislit.measure.edges import HoleEdges, hole_edges_from_profiles, subpixel_edges
 from multislit.measure.hole_fit import HoleResult, fit_holes
 from multislit.reconstruct import ScanResult, scan_image_for_holes
+from multislit.summaries import Summarised
 
 F64 = NDArray[np.float64]
 
@@ -40,8 +41,8 @@ _DEFAULT_SLIT_SPACING_MM = 20.0  # used when no row is seen by two neighbouring 
 
 
 # --------------------------------------------------------------------------- scans
-@dataclass(frozen=True, eq=False)
-class HoleMeasurement:
+@dataclass(frozen=True, eq=False, repr=False)
+class HoleMeasurement(Summarised):
     """Holes measured in one scan.
 
     Attributes
@@ -75,6 +76,16 @@ class HoleMeasurement:
     def measurable(self) -> list[HoleResult]:
         """The holes with a diameter."""
         return [h for h in self.holes if h.measurable]
+
+    def summary(self) -> str:
+        """The plate and a line per hole (what ``print`` shows)."""
+        name = self.scan.name if self.scan is not None and self.scan.name else "scan"
+        lines = [
+            f"{name}: plate plane RMS {self.plane_rms:.3f} mm, {len(self.edges)} edge points "
+            f"({self.method}), {len(self.measurable)} measurable hole(s) of {len(self.holes)}"
+        ]
+        lines += [f"  hole {i}: {h.summary()}" for i, h in enumerate(self.holes, 1)]
+        return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
         """The measurement as JSON-ready values (not the edges' arrays, not the scan)."""

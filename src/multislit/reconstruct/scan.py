@@ -27,6 +27,7 @@ from multislit.io import Capture
 from multislit.io.paths import as_path
 from multislit.reconstruct.triangulation import check_min_angle, triangulate
 from multislit.stripes import as_image, refine_centres
+from multislit.summaries import Summarised
 
 F64 = NDArray[np.float64]
 Progress = Callable[[int, int, str], None]
@@ -49,8 +50,8 @@ CALIBRATION_FILE = "calibration.json"
 _MIN_IDENTIFIED_FRACTION = 0.2
 
 
-@dataclass(frozen=True, eq=False)
-class ScanResult:
+@dataclass(frozen=True, eq=False, repr=False)
+class ScanResult(Summarised):
     """The 3D points of one image: its identified points that triangulate.
 
     Attributes

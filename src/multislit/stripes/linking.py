@@ -35,6 +35,7 @@ from multislit.stripes.validation import (
     positive_px,
     smoothing_taps,
 )
+from multislit.summaries import Summarised
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -45,8 +46,8 @@ I64 = NDArray[np.int64]
 DEFAULT_MIN_LENGTH = 10
 
 
-@dataclass(frozen=True, eq=False)
-class SlitExtraction:
+@dataclass(frozen=True, eq=False, repr=False)
+class SlitExtraction(Summarised):
     """Result of :func:`extract_slits`.
 
     Attributes
@@ -77,6 +78,16 @@ class SlitExtraction:
     def num_segments(self) -> int:
         """Number of kept segments S."""
         return int(self.segment.max()) + 1 if self.segment.size else 0
+
+    def summary(self) -> str:
+        """One line: centres, segments, sizes and noise."""
+        linked = int(np.count_nonzero(self.segment >= 0))
+        h, w = self.dots.shape
+        return (
+            f"{self.u.size} stripe centres ({linked} in {self.num_segments} segments) in a "
+            f"{w}x{h} px image; stripe width {self.stripe_width_px:.2f} px, dot size "
+            f"{self.dot_size_px:.2f} px, noise {self.noise_sigma:.3g}"
+        )
 
 
 def link_segments(

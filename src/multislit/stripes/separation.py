@@ -20,12 +20,13 @@ from multislit.stripes.sizes import (
 )
 from multislit.stripes.slope import _slopes_at, reflect101, slope_sigma
 from multislit.stripes.validation import SlitExtractionError, as_image, positive_px
+from multislit.summaries import Summarised
 
 F32 = NDArray[np.float32]
 
 
-@dataclass(frozen=True, eq=False)
-class Separation:
+@dataclass(frozen=True, eq=False, repr=False)
+class Separation(Summarised):
     """Result of :func:`separate` (Fig. 11 c, d, e); all images (H, W) float32, intensity units.
 
     Attributes
@@ -47,6 +48,14 @@ class Separation:
     saturated: NDArray[np.bool_]
     stripe_width_px: float
     dot_size_px: float
+
+    def summary(self) -> str:
+        """One line: image size, sizes used, saturated pixels."""
+        h, w = self.slits.shape
+        return (
+            f"{w}x{h} px: stripes {self.stripe_width_px:.2f} px wide, dots "
+            f"{self.dot_size_px:.2f} px, {int(np.count_nonzero(self.saturated))} saturated pixels"
+        )
 
 
 # Median of 9 by Devillard's 19 compare-exchange network ("Fast median search", 1998), pruned to
