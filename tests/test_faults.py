@@ -26,7 +26,7 @@ from multislit.app.stream import FrameResult, FrameWriter, check_frame_options, 
 from multislit.errors import CaptureError, MeasurementError, MultislitError
 from multislit.io import read_image
 from multislit.io.sources import open_source
-from multislit.reconstruct import triangulate
+from multislit.reconstruct import RefineOptions, triangulate
 
 
 def _cli(capsys, *argv) -> tuple[int, str, str]:
@@ -82,7 +82,7 @@ def test_wrong_types_are_one_line(call, match):
 )
 def test_min_angle_is_checked(angle, match):
     with pytest.raises(MultislitError, match=match):
-        ms.scan_image(np.zeros((8, 8), np.uint8), None, None, min_angle_deg=angle)
+        RefineOptions(min_angle_deg=angle)
     cam = ms.geometry.PinholeCamera(500, 500, 4, 4, tvec=(0, 0, 500))
     with pytest.raises(MultislitError, match=match):
         triangulate(cam, np.array([[1.0, 0, 0, 0]]), np.zeros((1, 2)), [0], min_angle_deg=angle)
@@ -230,6 +230,7 @@ def test_a_silent_scheduler_times_out(tmp_path, monkeypatch):
 class _FakeCapture:
     laser_channel = "red"
     image_size = (8, 8)
+    root = Path("cap")
 
 
 # --------------------------------------------------------------------------- OUT folders

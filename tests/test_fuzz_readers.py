@@ -286,10 +286,10 @@ def test_fuzz_readers_quick(originals, workdir, key, data):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("key", READERS)
-@settings(_FUZZ, max_examples=600)
+@settings(_FUZZ, max_examples=400)
 @given(data=st.data())
 def test_fuzz_readers_long(originals, workdir, key, data):
-    """600 damaged files per reader, other cases."""
+    """400 damaged files per reader, other cases."""
     _fuzz_one(originals, workdir, key, data)
 
 

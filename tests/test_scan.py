@@ -18,6 +18,8 @@ from multislit.identify import capture_reference
 from multislit.io import Capture, read_ply
 from multislit.measure import measure_holes, measure_holes_from_points
 from multislit.reconstruct import (
+    RefineOptions,
+    ScanOptions,
     ScanResult,
     load_capture_calibration,
     scan_capture,
@@ -191,7 +193,8 @@ def test_too_few_points_is_an_error(scans):
 def test_refined_centres_keep_slit_numbers(cap_dir, scans):
     """Refinement runs after identification: same points and slits, only u changes."""
     on = scans["plane"]
-    off = scan_capture(cap_dir, images=[cap_dir / "scans" / "plane.png"], refine_centres=False)[
+    no_refine = ScanOptions(refinement=RefineOptions(refine_centres=False))
+    off = scan_capture(cap_dir, images=[cap_dir / "scans" / "plane.png"], options=no_refine)[
         "plane"
     ]
     np.testing.assert_array_equal(on.identification.slit, off.identification.slit)

@@ -417,10 +417,17 @@ def test_two_workers_write_the_serial_files_in_order(calibrated, frames_dir, ser
 @pytest.mark.slow
 def test_dask_local_cluster_equals_serial(calibrated, frames_dir, serial_out, tmp_path):
     from multislit.app.batch import batch
+    from multislit.reconstruct import ScanOptions
 
     s = batch(calibrated, frames_dir, tmp_path / "out", workers=2, processes=False)
     assert s.frames == 4
     _same_out(serial_out, tmp_path / "out")
+    photo = ScanOptions().with_extraction(reject_texture=True)  # the options reach the cluster
+    batch(calibrated, frames_dir, tmp_path / "photo", workers=2, processes=False, options=photo)
+    run = json.loads((tmp_path / "photo" / "run.json").read_text())
+    assert run["command"] == "batch" and ScanOptions.from_dict(run["options"]) == photo
+    got = [len(read_ply(p)["x"]) for p in sorted((tmp_path / "photo").glob("*.ply"))]
+    assert got != [len(read_ply(p)["x"]) for p in sorted(serial_out.glob("*.ply"))]
 
 
 @pytest.mark.slow
@@ -753,20 +760,25 @@ def test_a_run_of_unusable_frames_exits_2_with_the_reason(calibrated: Path, tmp_
         folder.mkdir()
         assert cv2.imwrite(str(folder / file), img)
         out = tmp_path / f"out_{name}"
-        rc = main(["stream", str(calibrated), str(folder), "-o", str(out)])
+        argv = ["stream", str(calibrated), str(folder), "-o", str(out)]
+        rc = main(argv + (["--channel", "red"] if name == "green" else []))
         err = capsys.readouterr().err
         last = err.strip().splitlines()[-1]
         assert rc == 2 and last.startswith("multislit stream: error: no frame of"), err
         assert why in last and "Traceback" not in err, (name, last)
-    # the green laser's frame in its own channel gives points
-    out = tmp_path / "out_green_channel"
-    argv = ["stream", str(calibrated), str(tmp_path / "green"), "-o", str(out)]
-    assert main([*argv, "--channel", "green"]) == 0
-    assert _index(out)[0]["points"] > 1000
+    # the green laser's frame in its own channel gives points, also with the channel chosen
+    # from the data (the default)
+    for channel in ("green", "auto"):
+        out = tmp_path / f"out_green_{channel}"
+        argv = ["stream", str(calibrated), str(tmp_path / "green"), "-o", str(out)]
+        assert main([*argv, "--channel", channel]) == 0
+        assert _index(out)[0]["points"] > 1000
 
 
 @pytest.mark.slow
-def test_pictures_and_run_record(calibrated: Path, frames_dir: Path, tmp_path: Path):
+def test_pictures_and_run_record(
+    calibrated: Path, frames_dir: Path, serial_out: Path, tmp_path: Path
+):
     """``--pictures`` writes each frame's picture beside its PLY (stream, two workers, and
     scan); ``run.json`` says how the run was made; the view finds the calibration there."""
     from multislit.app.index import RUN_FILE
@@ -774,6 +786,7 @@ def test_pictures_and_run_record(calibrated: Path, frames_dir: Path, tmp_path: P
 
     out = tmp_path / "out"
     argv = ["stream", str(calibrated), str(frames_dir), "-o", str(out), "--pictures"]
+    argv += ["--reject-texture", "--channel", "auto"]  # the scan's options reach the workers
     assert main([*argv, "--workers", "2", "--max-frames", "2"]) == 0
     for i in range(2):
         pic = cv2.imread(str(out / f"frame_{i:06d}.png"))
@@ -786,7 +799,11 @@ def test_pictures_and_run_record(calibrated: Path, frames_dir: Path, tmp_path: P
     assert run["capture"] == str(calibrated.resolve())
     assert run["calibration"] == str((calibrated / "calibration.json").resolve())
     assert run["source"] == str(frames_dir) and run["settings"]["channel"] == "auto"
+    assert run["options"]["extraction"]["reject_texture"] is True
+    assert run["options"]["extraction"]["channel"] == "auto"
     assert find_calibration(out) == calibrated.resolve() / "calibration.json"
+    photo, plain = read_ply(out / "frame_000000.ply"), read_ply(serial_out / "frame_000000.ply")
+    assert len(photo["x"]) > 1000 and len(photo["x"]) != len(plain["x"])  # the photo mode's
     pts = tmp_path / "pts"
     assert main(["scan", str(calibrated), "-o", str(pts), "--pictures"]) == 0
     assert sorted(p.name for p in pts.iterdir()) == sorted(

@@ -25,7 +25,7 @@ from multislit.errors import MultislitError
 from multislit.identify import capture_reference, prepare_reference
 from multislit.io import Capture, read_ply, write_ply
 from multislit.measure import measure_holes
-from multislit.reconstruct import scan_capture, scan_image
+from multislit.reconstruct import ScanOptions, scan_capture, scan_image
 from multislit.sim import RigSpec, simulate_capture
 
 __all__ = [
@@ -33,6 +33,7 @@ __all__ = [
     "Capture",
     "MultislitError",
     "RigSpec",
+    "ScanOptions",
     "calibrate_capture",
     "capture_reference",
     "measure_holes",

@@ -41,7 +41,8 @@ from multislit.identify import capture_reference
 from multislit.io import Capture
 from multislit.io.paths import as_path
 from multislit.io.sources import open_source
-from multislit.reconstruct import load_capture_calibration
+from multislit.reconstruct import ScanOptions, load_capture_calibration
+from multislit.reconstruct.options import as_scan_options
 
 __all__ = ["DaskRunner", "batch"]
 
@@ -155,10 +156,16 @@ class DaskRunner:
     """
 
     def __init__(
-        self, client: Any, reference: Any, calibration: Any, *, pictures: bool = False
+        self,
+        client: Any,
+        reference: Any,
+        calibration: Any,
+        *,
+        pictures: bool = False,
+        options: ScanOptions | None = None,
     ) -> None:
         self.client = client
-        self.pictures = bool(pictures)
+        self.pictures, self.options = bool(pictures), options
         workers = max(1, len(client.scheduler_info().get("workers", {})))
         self.capacity = _INFLIGHT_PER_WORKER * workers
         self._ref = client.scatter(precompute_reference(reference), broadcast=True)
@@ -169,7 +176,14 @@ class DaskRunner:
         # keys one finished frame releases the data that a later, equal one still needs
         img = self.client.scatter(image, hash=False)
         return self.client.submit(
-            scan_frame, img, self._ref, self._cal, name=name, picture=self.pictures, pure=False
+            scan_frame,
+            img,
+            self._ref,
+            self._cal,
+            name=name,
+            picture=self.pictures,
+            options=self.options,
+            pure=False,
         )
 
     def done(self, handle: Any) -> bool:
@@ -193,7 +207,7 @@ def batch(
     max_frames: int | None = None,
     every: int = 1,
     on_bad_frame: str = "skip",
-    channel: str | None = None,
+    options: ScanOptions | None = None,
     calibration: str | os.PathLike[str] | None = None,
     overwrite: bool = False,
     pictures: bool = False,
@@ -203,7 +217,7 @@ def batch(
 
     Parameters
     ----------
-    capture, source, out, max_frames, every, on_bad_frame, channel, calibration, overwrite,
+    capture, source, out, max_frames, every, on_bad_frame, options, calibration, overwrite,
     pictures, progress :
         As :func:`multislit.app.stream.stream`.
     address : str, optional
@@ -219,6 +233,7 @@ def batch(
         As :func:`~multislit.app.stream.stream`; a scheduler that cannot be reached; no Dask.
     """
     check_frame_options(workers, every, max_frames, on_bad_frame)
+    opts = as_scan_options(options)
     if address is not None:
         check_address(address)
     as_path(source, "SOURCE", error=CaptureError)
@@ -226,14 +241,10 @@ def batch(
     distributed = _dask()
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)
-    src = open_source(source, channel=laser_channel(cap, channel), every=every)
-    writer.run = run_record(
-        "batch",
-        cap,
-        calibration,
-        source,
-        {"channel": laser_channel(cap, channel), "every": every, "dask": address},
-    )
+    channel = laser_channel(cap, opts.extraction.channel)
+    src = open_source(source, channel=channel, every=every)
+    settings = {"channel": channel, "every": every, "dask": address, "workers": workers}
+    writer.run = run_record("batch", cap, calibration, source, settings, opts)
     cluster = client = None
     try:
         if address is not None:
@@ -265,7 +276,7 @@ def batch(
         return run_frames(
             src,
             writer,
-            DaskRunner(client, ref, cal, pictures=pictures),
+            DaskRunner(client, ref, cal, pictures=pictures, options=opts),
             image_size=cap.image_size,
             max_frames=max_frames,
             on_bad_frame=on_bad_frame,

@@ -201,6 +201,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         calibration=args.calibration,
         images=images,
         progress=_progress("scan") if n > 3 else None,
+        options=_scan_options(args),
     )
     outdir.mkdir(parents=True, exist_ok=True)
     failed = []
@@ -211,7 +212,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
             continue
         path = res.write_ply(outdir / f"{name}.ply", comment=f"multislit scan {name}")
         if args.pictures:
-            picture = scan_picture(cap.image(paths[name]), res, num_slits=cap.num_slits)
+            plane = cap.image(paths[name], channel=res.options.extraction.channel)
+            picture = scan_picture(plane, res, num_slits=cap.num_slits)
             write_bytes_atomic(outdir / f"{name}.png", encode_png(picture))
         print(f"{res.summary()} -> {path}")
     if failed:
@@ -241,16 +243,23 @@ def cmd_holes(args: argparse.Namespace) -> int:
                 f"no scans to measure: {cap.root / 'scans'} has no *.png images (or give one image)"
             )
         ref = capture_reference(cap)
+        options = _scan_options(args)
         for path in paths:
             measurements[path.stem] = measure_holes(
-                cap.image(path), ref, cal, min_slits=args.min_slits, name=path.stem
+                cap.image(path, channel=options.extraction.channel),
+                ref,
+                cal,
+                options,
+                min_slits=args.min_slits,
+                name=path.stem,
             )
     elif src.is_file():
         raise MeasurementError(_holes_from_ply_refused(src))
     else:
         raise MeasurementError(f"not a PLY file or capture folder: {src}")
     if args.json:
-        print(json.dumps({k: m.to_dict() for k, m in measurements.items()}, indent=1))
+        d = {k: {**m.to_dict(), "options": options.to_dict()} for k, m in measurements.items()}
+        print(json.dumps(d, indent=1))
         return 0
     for m in measurements.values():
         print(m.summary())
@@ -325,9 +334,47 @@ _PICTURES_HELP = (
 )
 
 
-def _frame_options(p: argparse.ArgumentParser) -> None:
-    from multislit.io.sources import CHANNEL_CHOICES
+def _scan_option_flags(p: argparse.ArgumentParser) -> None:
+    """The flags of the scan's options (:class:`~multislit.reconstruct.ScanOptions`)."""
+    from multislit.stripes import CHANNEL_CHOICES
 
+    p.add_argument(
+        "--channel",
+        choices=CHANNEL_CHOICES,
+        help="colour images: the laser's channel; auto: in each image the plane in which the "
+        "stripes stand out most, clipped planes avoided (default: --options, else rig.json "
+        "laser_channel, else auto)",
+    )
+    p.add_argument(
+        "--reject-texture",
+        action="store_true",
+        default=None,
+        help="the photo mode: keep only centres that look like a laser line (photos of a "
+        "line on a checkerboard, a turntable, a textured object)",
+    )
+    p.add_argument(
+        "--options",
+        metavar="FILE.json",
+        help='the scan\'s options, stage by stage: {"extraction": {...}, '
+        '"identification": {...}, "refinement": {...}}; --channel and '
+        "--reject-texture override it",
+    )
+
+
+def _scan_options(args: argparse.Namespace):
+    """The ScanOptions of the command line: the options file, then the flags."""
+    from multislit.reconstruct import ScanOptions
+
+    options = ScanOptions.load(args.options) if args.options is not None else ScanOptions()
+    changes = {}
+    if args.channel is not None:
+        changes["channel"] = args.channel
+    if args.reject_texture is not None:
+        changes["reject_texture"] = args.reject_texture
+    return options.with_extraction(**changes) if changes else options
+
+
+def _frame_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("capture", help="capture folder (rig.json, reference/, calibration.json)")
     p.add_argument(
         "source",
@@ -343,13 +390,7 @@ def _frame_options(p: argparse.ArgumentParser) -> None:
         default="skip",
         help="a frame of the wrong size or unreadable: skip and count it (default) or stop",
     )
-    p.add_argument(
-        "--channel",
-        choices=CHANNEL_CHOICES,
-        help="colour frames: the laser's channel; auto: in each frame the plane in which the "
-        "stripes stand out most, clipped planes avoided (default rig.json laser_channel, "
-        "else auto)",
-    )
+    _scan_option_flags(p)
     p.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
     p.add_argument("--overwrite", action="store_true", help="replace frames already in OUT")
     p.add_argument("--pictures", action="store_true", help=_PICTURES_HELP)
@@ -361,7 +402,7 @@ def _frame_settings(args: argparse.Namespace) -> dict:
         "max_frames": args.max_frames,
         "every": args.every,
         "on_bad_frame": args.on_bad_frame,
-        "channel": args.channel,
+        "options": _scan_options(args),
         "calibration": args.calibration,
         "overwrite": args.overwrite,
     }
@@ -433,6 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--image", help="scan only this image (default: every scans/*.png)")
     sc.add_argument("--calibration", help="calibration file (default CAPTURE/calibration.json)")
     sc.add_argument("--pictures", action="store_true", help=_PICTURES_HELP)
+    _scan_option_flags(sc)
     sc.set_defaults(func=cmd_scan)
 
     ho = sub.add_parser("holes", help="measure holes in a flat plate (paper Table 1)")
@@ -447,6 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--min-slits", type=int, default=3, help="fewest slits crossing a measurable hole"
     )
     ho.add_argument("--json", action="store_true", help="print the results as JSON")
+    _scan_option_flags(ho)
     ho.set_defaults(func=cmd_holes)
 
     st = sub.add_parser("stream", help="scan a stream of frames: camera, video or images")

@@ -49,10 +49,12 @@ from multislit.io.paths import as_path, check_output_dir
 from multislit.io.sources import FrameSource, open_source
 from multislit.reconstruct import (
     CALIBRATION_FILE,
+    ScanOptions,
     ScanResult,
     load_capture_calibration,
     scan_image,
 )
+from multislit.reconstruct.options import as_scan_options
 
 __all__ = [
     "FrameResult",
@@ -111,6 +113,7 @@ def scan_frame(
     *,
     name: str = "",
     picture: bool = False,
+    options: ScanOptions | None = None,
 ) -> FrameResult:
     """Scan one frame with :func:`multislit.scan_image` (the settings of ``multislit scan``).
 
@@ -119,11 +122,12 @@ def scan_frame(
     image : (H, W) uint8 or uint16, the calibrated size
     reference, calibration : the capture's prepared reference set and calibration
     name : str, a name for messages. Default ''.
+    options : :class:`~multislit.reconstruct.ScanOptions`, optional; default the defaults
     picture : bool
         Draw the frame's picture (:func:`~multislit.app.pictures.scan_picture`) into the
         result. Default False.
     """
-    res, ms = _timed_scan(image, reference, calibration, name, None)
+    res, ms = _timed_scan(image, reference, calibration, name, None, options)
     return _frame_result(res, ms, image if picture else None, reference.num_slits)
 
 
@@ -133,9 +137,10 @@ def _timed_scan(
     calibration: Calibration,
     name: str,
     previous: ScanResult | None,
+    options: ScanOptions | None = None,
 ) -> tuple[ScanResult, float]:
     t0 = time.perf_counter()
-    res = scan_image(image, reference, calibration, name=name, previous=previous)
+    res = scan_image(image, reference, calibration, options, name=name, previous=previous)
     return res, (time.perf_counter() - t0) * 1000.0
 
 
@@ -309,13 +314,16 @@ class InlineRunner:
         *,
         prior: bool = False,
         pictures: bool = False,
+        options: ScanOptions | None = None,
     ) -> None:
         self.reference, self.calibration, self.prior = reference, calibration, bool(prior)
-        self.pictures = bool(pictures)
+        self.pictures, self.options = bool(pictures), options
         self._last: ScanResult | None = None
 
     def submit(self, image: NDArray, name: str) -> FrameResult:
-        res, ms = _timed_scan(image, self.reference, self.calibration, name, self._last)
+        res, ms = _timed_scan(
+            image, self.reference, self.calibration, name, self._last, self.options
+        )
         if self.prior:
             self._last = res
         return _frame_result(res, ms, image if self.pictures else None, self.reference.num_slits)
@@ -350,18 +358,27 @@ def _watch_parent(parent: int) -> None:
 
 
 def _init_worker(
-    reference: ReferenceSet, calibration: Calibration, parent: int, pictures: bool
+    reference: ReferenceSet,
+    calibration: Calibration,
+    parent: int,
+    pictures: bool,
+    options: ScanOptions | None,
 ) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     threading.Thread(target=_watch_parent, args=(parent,), name="parent", daemon=True).start()
     cv2.setNumThreads(1)  # a core per worker process: the processes are the parallelism
     _WORKER["reference"], _WORKER["calibration"] = reference, calibration
-    _WORKER["pictures"] = pictures
+    _WORKER["pictures"], _WORKER["options"] = pictures, options
 
 
 def _scan_in_worker(image: NDArray, name: str) -> FrameResult:
     return scan_frame(
-        image, _WORKER["reference"], _WORKER["calibration"], name=name, picture=_WORKER["pictures"]
+        image,
+        _WORKER["reference"],
+        _WORKER["calibration"],
+        name=name,
+        picture=_WORKER["pictures"],
+        options=_WORKER["options"],
     )
 
 
@@ -376,13 +393,20 @@ class ProcessRunner:
         *,
         live: bool,
         pictures: bool = False,
+        options: ScanOptions | None = None,
     ) -> None:
         self.capacity = workers if live else _INFLIGHT_PER_WORKER * workers
         self._pool = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_init_worker,
-            initargs=(precompute_reference(reference), calibration, os.getpid(), bool(pictures)),
+            initargs=(
+                precompute_reference(reference),
+                calibration,
+                os.getpid(),
+                bool(pictures),
+                options,
+            ),
         )
 
     def submit(self, image: NDArray, name: str) -> Future:
@@ -589,9 +613,11 @@ def run_record(
     calibration: str | os.PathLike[str] | None,
     source: str | os.PathLike[str],
     settings: dict[str, Any],
+    options: ScanOptions,
 ) -> dict[str, Any]:
     """What ``run.json`` says of a run: the command, the package's version, when it started,
-    the capture and calibration (absolute paths), the SOURCE and the run's settings."""
+    the capture and calibration (absolute paths), the SOURCE, the run's settings and the
+    scan's options."""
     cal = Path(calibration) if calibration is not None else capture.root / CALIBRATION_FILE
     return {
         "format": RUN_FORMAT,
@@ -602,6 +628,7 @@ def run_record(
         "calibration": os.fsdecode(cal.resolve()),
         "source": os.fsdecode(os.fspath(source)),
         "settings": settings,
+        "options": options.to_dict(),
     }
 
 
@@ -650,7 +677,7 @@ def stream(
     max_frames: int | None = None,
     every: int = 1,
     on_bad_frame: str = "skip",
-    channel: str | None = None,
+    options: ScanOptions | None = None,
     calibration: str | os.PathLike[str] | None = None,
     camera_features: Sequence[tuple[str, str]] = (),
     overwrite: bool = False,
@@ -673,10 +700,11 @@ def stream(
         Scan every ``every``-th frame of the source. Default 1.
     on_bad_frame : {'skip', 'stop'}
         Frames of the wrong size or unreadable: skip and count, or stop. Default skip.
-    channel : {'auto', 'red', 'green', 'blue', 'luma'}, optional
-        The laser's channel in colour frames (``auto``: in each frame the plane in which the
-        stripes stand out most, clipped planes avoided). Default: rig.json's
-        ``laser_channel``, else auto.
+    options : :class:`~multislit.reconstruct.ScanOptions`, optional
+        The scan's options (:func:`multislit.scan_image`), written to ``run.json``. Colour
+        frames are read in the extraction's channel (``auto``: in each frame the plane in
+        which the stripes stand out most, clipped planes avoided); without one, rig.json's
+        ``laser_channel``, else auto. Default ``ScanOptions()``.
     calibration : calibration file. Default ``CAPTURE/calibration.json``.
     camera_features : (name, value) pairs set on a Basler camera. Default none.
     overwrite : bool
@@ -701,6 +729,7 @@ def stream(
         frame; a run in which no frame gave points (see :func:`run_frames`).
     """
     check_frame_options(workers, every, max_frames, on_bad_frame)
+    opts = as_scan_options(options)
     if prior and workers != 1:
         raise MeasurementError(
             f"prior needs the frames in order in one process: use workers 1, not {workers}"
@@ -709,27 +738,21 @@ def stream(
     writer = FrameWriter(out, overwrite=overwrite)
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     cal = load_capture_calibration(cap, calibration)
+    channel = laser_channel(cap, opts.extraction.channel)
     src = open_source(
-        source,
-        channel=laser_channel(cap, channel),
-        every=every,
-        image_size=cap.image_size,
-        features=camera_features,
+        source, channel=channel, every=every, image_size=cap.image_size, features=camera_features
     )
-    writer.run = run_record(
-        "stream",
-        cap,
-        calibration,
-        source,
-        {"channel": laser_channel(cap, channel), "every": every, "prior": prior},
-    )
+    settings = {"channel": channel, "every": every, "prior": prior, "workers": workers}
+    writer.run = run_record("stream", cap, calibration, source, settings, opts)
     runner = None
     try:
         ref = capture_reference(cap)
         if workers == 1:
-            runner = InlineRunner(ref, cal, prior=prior, pictures=pictures)
+            runner = InlineRunner(ref, cal, prior=prior, pictures=pictures, options=opts)
         else:
-            runner = ProcessRunner(ref, cal, workers, live=src.live, pictures=pictures)
+            runner = ProcessRunner(
+                ref, cal, workers, live=src.live, pictures=pictures, options=opts
+            )
         return run_frames(
             src,
             writer,

@@ -14,6 +14,7 @@
 
 from multislit.identify.labelling import Identification, compile_kernels, identify
 from multislit.identify.matching import prepare_scoring, template_size
+from multislit.identify.options import IdentifyOptions
 from multislit.identify.order import OrderParams, apply_run_offsets, row_runs, run_offsets
 from multislit.identify.patches import (
     WINDOW_SUMS,
@@ -37,6 +38,7 @@ from multislit.identify.reference import (
 from multislit.identify.segments import split_at_brightness_steps
 
 __all__ = [
+    "IdentifyOptions",
     "row_runs",
     "run_offsets",
     "apply_run_offsets",

@@ -380,13 +380,15 @@ class Capture:
             )
         return ch
 
-    def image(self, path: str | Path) -> NDArray:
+    def image(self, path: str | Path, *, channel: str | None = None) -> NDArray:
         """Read one of this capture's images (any path), checking its size against rig.json.
 
-        A colour image is read as its :attr:`laser_channel` (by default the plane in which
-        the laser's line stands out most); grayscale images are read as they are.
+        A colour image is read as ``channel`` if given, else as its :attr:`laser_channel`
+        (by default the plane in which the laser's line stands out most); grayscale images
+        are read as they are.
         """
-        return read_image(path, self.image_size, channel=self.laser_channel)
+        plane = channel if channel is not None else self.laser_channel
+        return read_image(path, self.image_size, channel=plane)
 
     @classmethod
     def open(cls, root: str | Path, require_target: bool = True) -> Capture:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import io
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,7 +76,7 @@ def write_ply(
     slit: ArrayLike | None = None,
     confidence: ArrayLike | None = None,
     binary: bool = True,
-    comment: str | None = None,
+    comment: str | Sequence[str] | None = None,
 ) -> None:
     """Write measured points as a PLY file.
 
@@ -94,8 +95,8 @@ def write_ply(
         Per-point confidence, written as float32.
     binary : bool
         ``True`` (default): ``binary_little_endian``; ``False``: ``ascii``.
-    comment : str, optional
-        An extra single-line comment for the header; characters outside ASCII (a PLY header
+    comment : str or sequence of str, optional
+        Extra single-line comments for the header; characters outside ASCII (a PLY header
         is ASCII) are written as backslash escapes (``\\xe9``).
 
     Raises
@@ -106,8 +107,13 @@ def write_ply(
         written.
     """
     path = as_path(path, "path")
-    if comment is not None and not isinstance(comment, str):
-        raise MultislitError(f"comment must be a str, got {type(comment).__name__}")
+    extra = [comment] if isinstance(comment, str) else comment
+    if extra is None:
+        extra = []
+    if not isinstance(extra, list | tuple) or not all(isinstance(c, str) for c in extra):
+        raise MultislitError(
+            f"comment must be a str or a list of str, got {type(comment).__name__}"
+        )
     p = as_points(points, 3, "points")
     n = len(p)
     if not np.all(np.isfinite(p)):
@@ -137,10 +143,10 @@ def write_ply(
         columns.append(("confidence", "f4", c.astype(np.float64)))
 
     comments = [f"multislit {__version__}: x y z mm target frame, u v px"]
-    if comment is not None:
-        if "\n" in comment or "\r" in comment:
+    for line in extra:
+        if "\n" in line or "\r" in line:
             raise MultislitError("comment must be a single line")
-        comments.append(ascii_line(comment))
+        comments.append(ascii_line(line))
 
     fmt = "binary_little_endian" if binary else "ascii"
     header = ["ply", f"format {fmt} 1.0"]

@@ -27,7 +27,9 @@ from multislit.geometry import fit_plane_robust
 from multislit.identify import ReferenceSet
 from multislit.measure.edges import HoleEdges, hole_edges_from_profiles, subpixel_edges
 from multislit.measure.hole_fit import HoleResult, fit_holes
-from multislit.reconstruct import ScanResult, scan_image_for_holes
+from multislit.reconstruct import ScanOptions, ScanResult, scan_image_for_holes
+from multislit.reconstruct.options import as_scan_options
+from multislit.stripes import as_image, resolve_channel
 from multislit.summaries import Summarised
 
 F64 = NDArray[np.float64]
@@ -213,6 +215,7 @@ def measure_holes(
     image: ArrayLike,
     reference: ReferenceSet,
     calibration: Calibration,
+    options: ScanOptions | None = None,
     *,
     plane: ArrayLike | None = None,
     min_slits: int = 3,
@@ -239,9 +242,14 @@ def measure_holes(
 
     Parameters
     ----------
-    image : (H, W) uint8/uint16, the scan image, of the calibrated size
+    image : (H, W) grayscale or (H, W, 3) RGB, uint8/uint16, the scan image, of the
+        calibrated size
     reference : the prepared :class:`~multislit.identify.ReferenceSet`
     calibration : the rig's :class:`~multislit.calibrate.Calibration` with slit planes
+    options : :class:`~multislit.reconstruct.ScanOptions`, optional
+        The scan's options: the extraction's (the colour plane, the photo mode, ...) and the
+        identification's; the edges are measured on the extraction's centres (no
+        refinement). Default ``ScanOptions()``.
     plane : (4,) float64, optional
         The plate's plane (``n . X + d = 0``, mm). Default: fitted to the points.
     min_slits : int
@@ -266,7 +274,9 @@ def measure_holes(
     CalibrationError, MeasurementError
         Image, reference and calibration do not fit together, or too few points.
     """
-    result = scan_image_for_holes(image, reference, calibration, name=name)
+    opts = as_scan_options(options)
+    image = as_image(image, channel=resolve_channel(image, opts.extraction.channel))
+    result = scan_image_for_holes(image, reference, calibration, opts, name=name)
     return _measure_scan(
         result,
         plane,

@@ -1,5 +1,6 @@
 """multislit.reconstruct: identified stripe points -> 3D points (triangulation and scans)."""
 
+from multislit.reconstruct.options import RefineOptions, ScanOptions
 from multislit.reconstruct.scan import (
     CALIBRATION_FILE,
     ScanResult,
@@ -14,6 +15,8 @@ from multislit.reconstruct.triangulation import (
 )
 
 __all__ = [
+    "ScanOptions",
+    "RefineOptions",
     "triangulate_matrix",
     "triangulate",
     "CALIBRATION_FILE",

@@ -11,6 +11,7 @@ Units: mm in the target frame, px in the image.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -25,8 +26,9 @@ from multislit.errors import CalibrationError, MeasurementError
 from multislit.identify import Identification, ReferenceSet, capture_reference, identify
 from multislit.io import Capture
 from multislit.io.paths import as_path
-from multislit.reconstruct.triangulation import check_min_angle, triangulate
-from multislit.stripes import as_image, refine_centres
+from multislit.reconstruct.options import ScanOptions, as_scan_options
+from multislit.reconstruct.triangulation import triangulate
+from multislit.stripes import as_image, extract_slits, refine_centres, resolve_channel
 from multislit.summaries import Summarised
 
 F64 = NDArray[np.float64]
@@ -73,6 +75,8 @@ class ScanResult(Summarised):
     seconds : float, s
         Time to identify and triangulate.
     image_size : (W, H) px
+    options : the :class:`~multislit.reconstruct.ScanOptions` the scan used (None: read from
+        a PLY)
 
     The per-point arrays ``v``, ``slit``, ``confidence``, ``peak``, ``width`` and ``segment``
     and the counts are properties read from :attr:`identification`.
@@ -87,6 +91,7 @@ class ScanResult(Summarised):
     num_refined: int = 0
     seconds: float = 0.0
     image_size: tuple[int, int] = (0, 0)
+    options: ScanOptions | None = None
 
     @property
     def v(self) -> F64:
@@ -185,6 +190,7 @@ class ScanResult(Summarised):
             "refined": self.num_refined,
             "seconds": round(float(self.seconds), 4),
             "message": self.message,
+            "options": self.options.to_dict() if self.options is not None else None,
         }
 
     @classmethod
@@ -238,11 +244,15 @@ class ScanResult(Summarised):
         )
 
     def write_ply(self, path: str | Path, comment: str | None = None) -> Path:
-        """Write the points as binary little-endian PLY (x y z u v slit confidence)."""
+        """Write the points as binary little-endian PLY (x y z u v slit confidence); the
+        header's comments hold ``comment`` and the scan's options (``options {...}``, JSON)."""
         from multislit.io import write_ply
 
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
+        lines = [] if comment is None else [comment]
+        if self.options is not None:
+            lines.append("options " + json.dumps(self.options.to_dict(), separators=(",", ":")))
         write_ply(
             p,
             self.points,
@@ -251,7 +261,7 @@ class ScanResult(Summarised):
             slit=self.slit,
             confidence=self.confidence,
             binary=True,
-            comment=comment,
+            comment=lines,
         )
         return p
 
@@ -317,25 +327,38 @@ def _scan(
     reference: ReferenceSet,
     calibration: Calibration,
     *,
-    refine: bool,
-    min_angle_deg: float,
+    options: ScanOptions | None,
     name: str,
     end_order: bool,
+    refine: bool = True,
     previous: ScanResult | None = None,
 ) -> ScanResult:
-    """Identify, optionally refine the centres, and triangulate (see :func:`scan_image`)."""
+    """Identify, optionally refine the centres, and triangulate (see :func:`scan_image`);
+    ``refine`` False leaves the centres as extracted whatever the options say."""
+    opts = as_scan_options(options)
     if previous is not None and not isinstance(previous, ScanResult):
         raise MeasurementError(
             f"previous must be the ScanResult of the previous frame, got {type(previous).__name__}"
         )
-    min_angle_deg = check_min_angle(min_angle_deg)
+    ex_opts = opts.extraction
+    image = np.ascontiguousarray(as_image(image, channel=resolve_channel(image, ex_opts.channel)))
     size, planes = _check_scan_inputs(image, reference, calibration)
     prior = None
     if previous is not None:
         if len(previous.points) and tuple(previous.image_size) == tuple(size):
             prior = previous.identification  # a frame that was no scan is no prior
     t0 = time.perf_counter()
-    ident = identify(image, reference, end_order=end_order, previous=prior)
+    extraction = extract_slits(
+        image, reference.stripe_width_px, reference.dot_size_px, **ex_opts.kwargs()
+    )
+    ident = identify(
+        image,
+        reference,
+        min_confidence=opts.identification.min_confidence,
+        end_order=end_order,
+        extraction=extraction,
+        previous=prior,
+    )
     m = ident.slit >= 0
     problem = _not_a_scan(ident)
     if problem:
@@ -344,6 +367,7 @@ def _scan(
     u = ident.u
     refined = np.zeros(len(u), bool)
     ex = ident.extraction
+    refine = refine and opts.refinement.refine_centres
     if refine and m.any() and ex is not None and np.isfinite(ex.stripe_width_px):
         # all points, so that a neighbouring stripe is seen even where it is not identified
         u, refined = refine_centres(
@@ -351,7 +375,7 @@ def _scan(
         )
     uv = np.stack([u[m], ident.v[m]], axis=1)
     pts, valid = triangulate(
-        calibration.camera, planes, uv, ident.slit[m], min_angle_deg=min_angle_deg
+        calibration.camera, planes, uv, ident.slit[m], min_angle_deg=opts.refinement.min_angle_deg
     )
     idx = np.flatnonzero(m)[valid]
     seconds = time.perf_counter() - t0
@@ -365,6 +389,7 @@ def _scan(
         num_refined=int(np.count_nonzero(refined[idx])),
         seconds=seconds,
         image_size=size,
+        options=opts,
     )
 
 
@@ -372,9 +397,8 @@ def scan_image(
     image: ArrayLike,
     reference: ReferenceSet,
     calibration: Calibration,
+    options: ScanOptions | None = None,
     *,
-    refine_centres: bool = True,
-    min_angle_deg: float = 2.0,
     name: str = "",
     previous: ScanResult | None = None,
 ) -> ScanResult:
@@ -382,15 +406,14 @@ def scan_image(
 
     Parameters
     ----------
-    image : (H, W) uint8/uint16, a scan (lasers on), of the calibrated size
+    image : (H, W) grayscale or (H, W, 3) RGB, uint8/uint16, a scan (lasers on), of the
+        calibrated size
     reference : the prepared :class:`~multislit.identify.ReferenceSet`
     calibration : the rig's :class:`~multislit.calibrate.Calibration` with slit planes
-    refine_centres : bool
-        After the identification, re-centre the identified points for triangulation with
-        :func:`~multislit.stripes.refine_centres` (Steger's centre on a smoothed background,
-        fitted along the stripe); the slit numbers do not change. Default True.
-    min_angle_deg : float, deg
-        Lines of sight meeting a slit plane at a smaller angle are dropped. Default 2.0.
+    options : :class:`~multislit.reconstruct.ScanOptions`, optional
+        The extraction's (colour plane, photo mode, ...), the identification's and the
+        refinement's options (re-centring the identified points, the least angle between a
+        line of sight and a slit plane). Default: ``ScanOptions()``.
     name : str
         A name for messages and the summary. Default ''.
     previous : ScanResult
@@ -401,9 +424,9 @@ def scan_image(
 
     Returns
     -------
-    ScanResult with the identified points that triangulate. An image without slits, or one
-    in which fewer than a fifth of the stripe centres are identified (lasers off, mirrored,
-    another rig), gives an empty result whose ``message`` says so.
+    ScanResult with the identified points that triangulate (and the options used). An image
+    without slits, or one in which fewer than a fifth of the stripe centres are identified
+    (lasers off, mirrored, another rig), gives an empty result whose ``message`` says so.
 
     Raises
     ------
@@ -413,16 +436,14 @@ def scan_image(
         number of slits than the reference.
     MeasurementError
         ``reference`` is not a :class:`~multislit.identify.ReferenceSet`, or was prepared for
-        another image size, or ``previous`` is not a :class:`ScanResult`.
-    MultislitError
-        ``min_angle_deg`` is not a number of degrees in [0, 90).
+        another image size, ``previous`` is not a :class:`ScanResult`, or ``options`` is not
+        a ScanOptions.
     """
     return _scan(
         image,
         reference,
         calibration,
-        refine=refine_centres,
-        min_angle_deg=min_angle_deg,
+        options=options,
         name=name,
         end_order=True,
         previous=previous,
@@ -430,16 +451,28 @@ def scan_image(
 
 
 def scan_image_for_holes(
-    image: ArrayLike, reference: ReferenceSet, calibration: Calibration, *, name: str = ""
+    image: ArrayLike,
+    reference: ReferenceSet,
+    calibration: Calibration,
+    options: ScanOptions | None = None,
+    *,
+    name: str = "",
 ) -> ScanResult:
     """The scan hole measurement works on: :func:`scan_image` on the extraction's centres
-    (no refinement), without the rows the identification restores at segment ends by the row
-    order (``identify(..., end_order=False)``), which would add edges that are not on a rim.
+    (no refinement, whatever ``options`` say), without the rows the identification restores at
+    segment ends by the row order (``identify(..., end_order=False)``), which would add edges
+    that are not on a rim.
 
     Parameters and errors as :func:`scan_image`.
     """
     return _scan(
-        image, reference, calibration, refine=False, min_angle_deg=2.0, name=name, end_order=False
+        image,
+        reference,
+        calibration,
+        options=options,
+        name=name,
+        end_order=False,
+        refine=False,
     )
 
 
@@ -476,8 +509,7 @@ def scan_capture(
     reference: ReferenceSet | None = None,
     images: Sequence[str | Path] | None = None,
     progress: Progress | None = None,
-    *,
-    refine_centres: bool = True,
+    options: ScanOptions | None = None,
 ) -> dict[str, ScanResult]:
     """Scan the images of a capture folder.
 
@@ -491,8 +523,9 @@ def scan_capture(
     images : image paths to scan (default: the capture's ``scans/*.png``)
     progress : called as ``progress(i, n, name)`` before each image and with ``i == n`` at
         the end
-    refine_centres : bool
-        Refine the stripe centres before triangulation (see :func:`scan_image`). Default True.
+    options : :class:`~multislit.reconstruct.ScanOptions`, optional
+        The scan's options (:func:`scan_image`); colour images are read in the extraction's
+        channel, else the capture's ``laser_channel``. Default ``ScanOptions()``.
 
     Returns
     -------
@@ -503,6 +536,7 @@ def scan_capture(
     CaptureError, CalibrationError, MeasurementError
         No scans, a missing or mismatched calibration, images of the wrong size.
     """
+    opts = as_scan_options(options)
     cap = capture if isinstance(capture, Capture) else Capture.open(capture, require_target=False)
     paths = [Path(p) for p in images] if images is not None else list(cap.scans)
     if not paths:
@@ -525,8 +559,8 @@ def scan_capture(
     for i, (path, nm) in enumerate(zip(paths, names, strict=True)):
         if progress:
             progress(i, len(paths), nm)
-        img = cap.image(path)
-        out[nm] = scan_image(img, ref, cal, refine_centres=refine_centres, name=nm)
+        img = cap.image(path, channel=opts.extraction.channel)
+        out[nm] = scan_image(img, ref, cal, opts, name=nm)
     if progress:
         progress(len(paths), len(paths), "done")
     return out

@@ -64,6 +64,7 @@ from multislit.stripes.openings import (
     remove_streaks,
     vertical_opening,
 )
+from multislit.stripes.options import ExtractionOptions
 from multislit.stripes.refine import (
     REFINE_STEGER_SCALE,
     refine_centres,
@@ -97,6 +98,7 @@ from multislit.stripes.validation import (
 )
 
 __all__ = [
+    "ExtractionOptions",
     "as_image",
     "CHANNELS",
     "CHANNEL_CHOICES",
