@@ -40,6 +40,20 @@ def small_capture(tmp_path_factory: pytest.TempPathFactory, small_spec: RigSpec)
     return simulate_capture(out, ["holes", "steps"], small_spec, seed=3)
 
 
+@pytest.fixture(scope="session")
+def calibrated(small_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of the small capture (holes, steps) with its calibration (hand readings); tests
+    write their outputs elsewhere."""
+    import shutil
+
+    from multislit.calibrate import calibrate_capture, write_calibration
+
+    cap = tmp_path_factory.mktemp("calibrated") / "cap"
+    shutil.copytree(small_capture, cap)
+    write_calibration(calibrate_capture(cap, source="hand"), cap / "calibration.json")
+    return cap
+
+
 @pytest.fixture()
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)

@@ -4,8 +4,6 @@ file to the library, written into the output."""
 from __future__ import annotations
 
 import json
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,14 +14,6 @@ from multislit.errors import MultislitError
 from multislit.identify import IdentifyOptions
 from multislit.reconstruct import RefineOptions, ScanOptions
 from multislit.stripes import ExtractionOptions
-
-
-@pytest.fixture(scope="module")
-def calibrated(small_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    cap = tmp_path_factory.mktemp("options") / "cap"
-    shutil.copytree(small_capture, cap, ignore=shutil.ignore_patterns("truth"))
-    ms.write_calibration(ms.calibrate_capture(cap, source="hand"), cap / "calibration.json")
-    return cap
 
 
 def test_options_round_trip_and_defaults(tmp_path):
