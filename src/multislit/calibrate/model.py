@@ -22,6 +22,7 @@ from multislit.calibrate.slit_planes import SlitPlanes
 from multislit.errors import CalibrationError, MultislitError
 from multislit.geometry import MatrixCamera, PinholeCamera, camera_from_dict
 from multislit.geometry.camera import F64
+from multislit.geometry.dots import DotProjector
 from multislit.io import json_safe, parse_json, read_json, write_text_atomic
 from multislit.io.paths import as_path
 from multislit.summaries import Summarised
@@ -45,6 +46,7 @@ class Calibration(Summarised):
     dlt_rms_px : float, px, reprojection RMS of the DLT on the markers
     marker_ids : tuple of str, (M,), markers used
     marker_residuals_px : (M,) float64, px, reprojection distance of :attr:`camera` per marker
+    dot_projector : DotProjector (the dot source and one ray per dot), or None
     """
 
     image_size: tuple[int, int]
@@ -56,6 +58,7 @@ class Calibration(Summarised):
     dlt_rms_px: float = float("nan")
     marker_ids: tuple[str, ...] = ()
     marker_residuals_px: F64 = field(default_factory=lambda: np.zeros(0))
+    dot_projector: DotProjector | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "image_size", (int(self.image_size[0]), int(self.image_size[1])))
@@ -113,6 +116,7 @@ class Calibration(Summarised):
             "camera_refined": None if self.refined is None else self.refined.to_dict(),
             "projector_matrix": None if self.projector is None else self.projector.to_dict(),
             "slit_planes": None if self.slit_planes is None else self.slit_planes.to_dict(),
+            "dot_projector": None if self.dot_projector is None else self.dot_projector.to_dict(),
             "residuals": {
                 "camera_rms_px": json_safe(float(self.camera_rms_px)),
                 "dlt_rms_px": json_safe(float(self.dlt_rms_px)),
@@ -161,6 +165,8 @@ class Calibration(Summarised):
         sp = d.get("slit_planes")
         if sp is not None:
             _check_slit_planes(sp)
+        dots = d.get("dot_projector")
+        dot_projector = None if dots is None else DotProjector.from_dict(dots)
         res = d.get("residuals")
         if res is None:
             res = {}
@@ -186,6 +192,7 @@ class Calibration(Summarised):
                 dlt_rms_px=rms["dlt_rms_px"],
                 marker_ids=tuple(markers),
                 marker_residuals_px=np.array(mres, dtype=float),
+                dot_projector=dot_projector,
             )
         except CalibrationError:
             raise

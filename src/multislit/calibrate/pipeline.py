@@ -38,11 +38,13 @@ from numpy.typing import ArrayLike
 
 from multislit.calibrate.boards import (
     BoardPoints,
+    ReferenceStripes,
     fit_with_boards,
     plane_origins,
     reference_stripes,
 )
 from multislit.calibrate.capture_camera import CameraCalibration, camera_from_capture
+from multislit.calibrate.dots import DotFit, capture_dot_projector
 from multislit.calibrate.model import Calibration
 from multislit.calibrate.projector import ProjectorFit, auto_fit_problem, fit_projector
 from multislit.calibrate.slit_labels import label_by_order
@@ -89,6 +91,8 @@ class CalibrationResult(Summarised):
     origin : (K,) str, where each slit's plane came from (:func:`plane_origins`; "" = none)
     reference : the capture's prepared :class:`~multislit.identify.ReferenceSet` (None: the
         reference boards were not used); scans of the capture can reuse it
+    dots : DotFit, the dot projector fitted on the reference boards (None: not calibrated, the
+        notes say why)
     """
 
     calibration: Calibration
@@ -100,6 +104,7 @@ class CalibrationResult(Summarised):
     boards: BoardPoints | None = None
     origin: tuple[str, ...] = ()
     reference: ReferenceSet | None = None
+    dots: DotFit | None = None
 
     def summary(self) -> str:
         """The report's lines (:func:`format_report`)."""
@@ -152,6 +157,7 @@ class CalibrationResult(Summarised):
             "reference_boards": None
             if self.boards is None
             else {"planes": self.boards.planes.tolist(), "rms_mm": self.boards.rms_mm.tolist()},
+            "dot_projector": None if self.dots is None else self.dots.report(),
             "projector_matrix": {
                 "median_rms_mm": float(np.nanmedian(self.projector.projector_rms_mm))
                 if np.any(np.isfinite(self.projector.projector_rms_mm))
@@ -226,9 +232,9 @@ def calibrate_capture(
         )
         pts = hand_slit_points(cap)
         fit = fit_projector(pts, cap.num_slits)
-    boards, origin = None, plane_origins(fit, pts)
+    boards, origin, stripes = None, plane_origins(fit, pts), None
     if reference is not None:
-        pts, fit, boards, origin = _add_boards(cap, cam, pts, fit, notes, reference)
+        pts, fit, boards, origin, stripes = _add_boards(cap, cam, pts, fit, notes, reference)
     if used_source == "hand":
         bad = _hand_reading_problem(hand_slit_points(cap), fit.slit_planes.planes)
         if bad:
@@ -237,6 +243,21 @@ def calibrate_capture(
     if grazing:
         raise CalibrationError(grazing + "; check calibration/slits.png and the slit readings")
     notes += _fit_notes(fit)
+    dots = None
+    if stripes is not None and cam.refined is not None:
+        try:
+            dots = capture_dot_projector(
+                [cap.image(p) for p in cap.references],
+                stripes,
+                cam.refined,
+                fit.slit_planes,
+                reference.stripe_width_px,
+                reference.dot_size_px,
+            )
+        except CalibrationError as exc:
+            notes.append(f"{exc}; scans can use the template identification only")
+    elif reference is None:
+        notes.append("no dot projector without the reference boards")
     res = cam.residuals
     calib = Calibration(
         image_size=cap.image_size,
@@ -248,9 +269,10 @@ def calibrate_capture(
         dlt_rms_px=res.dlt_rms_px,
         marker_ids=res.ids,
         marker_residuals_px=res.refined_px,
+        dot_projector=None if dots is None else dots.projector,
     )
     return CalibrationResult(
-        calib, cam, pts, fit, used_source, tuple(notes), boards, origin, reference
+        calib, cam, pts, fit, used_source, tuple(notes), boards, origin, reference, dots
     )
 
 
@@ -381,8 +403,9 @@ def _add_boards(
     fit: ProjectorFit,
     notes: list[str],
     reference: ReferenceSet,
-) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...]]:
-    """The fit with the reference boards' points (:func:`fit_with_boards`), and each plane's origin.
+) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...], ReferenceStripes]:
+    """The fit with the reference boards' points (:func:`fit_with_boards`), each plane's origin
+    and the reference images' numbered stripe centres.
 
     Appends to ``notes``; raises :class:`CalibrationError` naming the slits the references show
     that end without a plane.
@@ -413,7 +436,7 @@ def _add_boards(
             + "".join(f"; {n}" for n in bf.boards.notes)
             + "; check the reference images (every slit on every board) and the target image"
         )
-    return bf.points, fit, bf.boards, tuple(origin)
+    return bf.points, fit, bf.boards, tuple(origin), stripes
 
 
 def _fit_notes(fit: ProjectorFit) -> list[str]:
@@ -484,6 +507,15 @@ def format_report(result: CalibrationResult) -> list[str]:
             "reference boards posed by the calibrated slits, RMS "
             + ", ".join(f"{v:.4f}" for v in r["reference_boards"]["rms_mm"])
             + " mm"
+        )
+    d = r["dot_projector"]
+    if d is not None:
+        lines.append(
+            f"dot projector: {d['rays']} dots seen on two or more boards ("
+            + "/".join(str(n) for n in d["dots_found_per_board"])
+            + f" found per board), their images {d['rms_px']:.3f} px RMS from their rays; "
+            f"source at {', '.join(f'{x:.1f}' for x in d['source_mm'])} mm "
+            f"(its lines {d['source_rms_mm']:.2f} mm RMS from it)"
         )
     if result.projector.projector is not None:
         lines.append(

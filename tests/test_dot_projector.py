@@ -1,0 +1,171 @@
+"""The dot projector calibrated from the reference boards, against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from multislit.calibrate import Calibration, calibrate_capture
+from multislit.errors import CalibrationError
+from multislit.geometry.dots import DotProjector, dot_frame
+from multislit.io import Capture
+from multislit.sim import RigSpec, SimulatedRig
+from multislit.stripes import SlitExtractionError
+from multislit.stripes.dots import DotCentres, dots_clear_of_stripes, find_dots, stripe_maps
+
+
+@pytest.fixture(scope="module")
+def calibrated(small_capture):
+    return calibrate_capture(small_capture)
+
+
+def _true_rig(capture) -> SimulatedRig:
+    cap = Capture.open(capture)
+    return SimulatedRig.build(RigSpec.from_dict(cap.rig["simulator"]["rig"]))
+
+
+def test_source_found_within_a_few_mm(calibrated, small_capture):
+    rig = _true_rig(small_capture)
+    fit = calibrated.dots
+    assert fit is not None, calibrated.notes
+    err = np.linalg.norm(fit.projector.source - rig.dots.origin)
+    assert err < 5.0, err  # mm; 40 mm from the slit projector along the slits
+    assert fit.rms_px < 0.4, fit.report()
+
+
+@pytest.mark.parametrize("depth", [750.0, 900.0, 1050.0])
+def test_rays_put_dots_where_the_true_dots_land(calibrated, small_capture, depth):
+    """On a plane facing the rig at three depths (the middle one between the boards, the
+    others at and beyond the outer ones), each calibrated ray lands within a pixel of a true
+    dot, and most true dots in the image have a ray."""
+    rig = _true_rig(small_capture)
+    proj = calibrated.dots.projector
+    z = 1000.0 - depth  # the rig looks along -Z from Z = 1000 mm
+
+    def land(origin, directions):
+        t = (z - origin[2]) / directions[:, 2]
+        return rig.camera.project(origin + t[:, None] * directions)
+
+    truth = land(rig.dots.origin, rig.dots.directions)
+    w, h = rig.camera.image_size
+    truth = truth[
+        (truth[:, 0] > 5) & (truth[:, 0] < w - 6) & (truth[:, 1] > 5) & (truth[:, 1] < h - 6)
+    ]
+    ours = calibrated.calibration.camera.project(
+        np.broadcast_to(proj.source, (proj.num_dots, 3))
+        + ((z - proj.source[2]) / proj.directions[:, 2])[:, None] * proj.directions
+    )
+    d, _ = cKDTree(truth).query(ours)
+    assert np.median(d) < 0.5, np.median(d)
+    assert np.mean(d < 1.0) > 0.9, np.mean(d < 1.0)
+    covered, _ = cKDTree(ours).query(truth)
+    assert np.mean(covered < 1.0) > 0.5, np.mean(covered < 1.0)
+
+
+def test_reference_depths_are_the_boards(calibrated, small_capture):
+    cap = Capture.open(small_capture)
+    boards = cap.rig["simulator"]["rig"]["reference_distances"]
+    got = calibrated.dots.projector.reference_depths
+    assert got.shape == (len(boards),)
+    # the boards stand at these distances from the rig along -Z; the camera looks slightly
+    # sideways, so its axis meets them a little farther
+    assert np.all(np.abs(np.sort(got) - np.sort(boards)) < 0.05 * np.array(boards))
+
+
+def test_the_calibration_file_keeps_the_dot_projector(calibrated, tmp_path):
+    cal = calibrated.calibration
+    back = Calibration.load(cal.save(tmp_path / "cal.json"))
+    a, b = cal.dot_projector, back.dot_projector
+    assert b is not None and b.num_dots == a.num_dots
+    np.testing.assert_allclose(b.source, a.source)
+    np.testing.assert_allclose(b.directions, a.directions, atol=1e-8)
+    np.testing.assert_allclose(b.reference_depths, a.reference_depths)
+
+
+def test_the_report_states_the_dot_projector(calibrated):
+    from multislit.calibrate import format_report
+
+    lines = [x for x in format_report(calibrated) if x.startswith("dot projector:")]
+    assert len(lines) == 1 and "px RMS" in lines[0], lines
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d.pop("psi"), "dot_projector has no psi"),
+        (lambda d: d.__setitem__("source", [0.0, "x", 1.0]), "dot_projector is malformed"),
+        (lambda d: d.__setitem__("frame", np.eye(3).tolist()[:2]), "frame must be a 3x3"),
+        (lambda d: d.__setitem__("phi", d["phi"][:-1]), "phi and psi"),
+        (lambda d: d.__setitem__("reference_depths", [-5.0]), "reference_depths"),
+    ],
+)
+def test_a_malformed_dot_projector_is_named(calibrated, change, message):
+    d = json.loads(calibrated.calibration.to_json())
+    change(d["dot_projector"])
+    with pytest.raises(CalibrationError, match=message):
+        Calibration.from_dict(d)
+
+
+def test_dot_frame_is_a_rotation_with_y_along_the_slits():
+    rng = np.random.default_rng(0)
+    dirs = rng.normal([0, 0, 1], 0.1, (50, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    f = dot_frame(dirs, [0.1, 1.0, 0.0])
+    np.testing.assert_allclose(f @ f.T, np.eye(3), atol=1e-12)
+    assert f[1] @ np.array([0.1, 1.0, 0.0]) > 0.99
+    proj = DotProjector(np.zeros(3), f, *_angles(dirs, f))
+    np.testing.assert_allclose(proj.directions, dirs, atol=1e-12)
+
+
+def _angles(dirs, f):
+    p = dirs @ f.T
+    return np.arctan2(p[:, 0], p[:, 2]), np.arcsin(p[:, 1])
+
+
+def _spots(shape, uv, sigma, amp):
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    img = np.zeros(shape, np.float32)
+    for (u, v), a in zip(uv, amp, strict=True):
+        img += a * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma**2))
+    return img
+
+
+def test_find_dots_centres_gaussian_spots_to_a_tenth_of_a_pixel():
+    rng = np.random.default_rng(3)
+    uv = np.stack([rng.uniform(5, 95, 30), rng.uniform(5, 75, 30)], 1)
+    keep = cKDTree(uv).query(uv, k=2)[0][:, 1] > 6  # separate spots
+    uv = uv[keep]
+    img = _spots((80, 100), uv, 1.0, np.full(len(uv), 50.0))
+    img += rng.normal(0, 1.0, img.shape).astype(np.float32)
+    dots = find_dots(img, 1.0, 1.0 * 2.3548)
+    d, i = cKDTree(dots.uv).query(uv)
+    assert np.all(d < 0.1), d.max()
+    assert len(dots) == len(uv)  # no dot from the noise
+
+
+def test_find_dots_rejects_bad_arguments():
+    with pytest.raises(SlitExtractionError, match="dot_image"):
+        find_dots(np.zeros(5), 1.0, 2.0)
+    with pytest.raises(SlitExtractionError, match="noise_sigma"):
+        find_dots(np.zeros((5, 5)), -1.0, 2.0)
+    with pytest.raises(SlitExtractionError, match="dot_size_px"):
+        find_dots(np.zeros((5, 5)), 1.0, math.nan)
+
+
+def test_speckle_on_a_stripe_is_not_a_dot():
+    """Beside a stripe, a peak a fifth of the stripe's height or more is a dot; weaker is
+    speckle on the stripe."""
+    shape = (40, 60)
+    u = np.full(40, 20.0)
+    v = np.arange(40.0)
+    dist, peak = stripe_maps(u, v, np.full(40, 200.0), shape, 3.0)
+    dots = DotCentres(
+        np.array([21.0, 22.0, 40.0]), np.array([10.0, 25.0, 10.0]), np.array([20.0, 60.0, 20.0])
+    )
+    kept, near = dots_clear_of_stripes(dots, dist, peak, 3.0, 0.2)
+    np.testing.assert_array_equal(kept.u, [22.0, 40.0])
+    np.testing.assert_array_equal(near, [True, False])
