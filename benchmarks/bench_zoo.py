@@ -1,17 +1,20 @@
 """Identification on zoo rigs and scenes (drawn at random), scored on the objects apart from the wall.
 
-For each seed: :func:`multislit.sim.simulate_zoo_capture` draws a rig and two scenes and writes
-the capture; the capture is calibrated (:func:`multislit.calibrate.calibrate_capture`; a failure is reported, the
-identification does not need it); the reference is prepared and every scan identified. Per
-scene it prints the object coverage (true stripe-centre pixels on the objects with a point of
-the right slit), the share of points on the objects with a wrong slit (all, and at confidence
->= 0.5), and the same coverage and wrong share on the backdrop.
+For each seed: :func:`multislit.sim.simulate_zoo_capture` draws a rig and the scenes and writes
+the capture (or reuses it from ``--keep``); the capture is calibrated
+(:func:`multislit.calibrate.calibrate_capture`: the camera, the slit planes and the dot
+projector); every scan is identified by each method (``--method``: the dots' geometry, the
+paper's template matching, or both). Per scene and method it prints the object coverage (true
+stripe-centre pixels on the objects with a point of the right slit), the share of points on
+the objects with a wrong slit (all, and at confidence >= 0.5), where the objects' pixels are
+lost, the same coverage and wrong share on the backdrop, and the time.
 
 Seeds: 0-99 are tuning seeds (look at them while developing); 1000 and above are held out
-(report on them, never tune on them). ``--held-out`` runs seeds 1000, 1001, ...
+(report on them, never tune on them). ``--held-out N`` runs seeds 1000, 1001, ...; seeds of
+``--seeds`` all 1000 or above are reported as held out too.
 
-Run:  .venv/bin/python benchmarks/bench_zoo.py [--seeds 0 1 2] [--held-out] [--size 640 512]
-      [--option NAME=VALUE ...]  (an identification mode to compare, not written)
+Run:  .venv/bin/python benchmarks/bench_zoo.py [--seeds 0 1 2] [--held-out N] [--size 640 512]
+      [--scenes 2] [--method geometry template] [--keep DIR] [--write]
 """
 
 from __future__ import annotations
@@ -25,27 +28,33 @@ import numpy as np
 from results import command_line, write_section
 
 from multislit.calibrate import calibrate_capture
-from multislit.identify import prepare_reference
-from multislit.identify.labelling import _identify
-from multislit.identify.matching import _Options
+from multislit.errors import MultislitError
+from multislit.identify import METHODS, IdentifyOptions, identify, prepare_reference
 from multislit.io import Capture
+from multislit.reconstruct import rig_of
 from multislit.sim import coverage_losses, object_metrics, simulate_zoo_capture
 
 TUNING_SEEDS = (0, 1, 2)
 HELD_OUT_START = 1000
 
 
-def _calibrate(cap: Capture) -> str:
-    """Calibrate; a short report: slits without a plane, or why it failed."""
+def _calibrate(cap: Capture):
+    """The calibration result, or None and why it failed."""
     try:
-        res = calibrate_capture(cap)
-    except Exception as exc:  # report every failure, go on with identification
-        return f"failed: {type(exc).__name__}: {str(exc)[:160]}"
+        return calibrate_capture(cap), ""
+    except MultislitError as exc:  # report every failure, go on with what can run
+        return None, f"failed: {type(exc).__name__}: {str(exc)[:160]}"
+
+
+def _calibration_summary(res) -> str:
     sp = res.calibration.slit_planes
-    if sp is None:
-        return f"ok ({res.source}), no slit planes"
     missing = np.flatnonzero(~sp.valid).tolist()
-    return f"ok ({res.source}), slits without a plane: {missing or 'none'} of {sp.num_slits}"
+    dots = res.dots
+    return f"ok ({res.source}), slits without a plane: {missing or 'none'} of {sp.num_slits}, " + (
+        f"dot projector {dots.tracked} rays ({dots.rms_px:.2f} px RMS)"
+        if dots is not None
+        else "no dot projector"
+    )
 
 
 def _rig_summary(cap: Capture) -> str:
@@ -60,57 +69,62 @@ def _rig_summary(cap: Capture) -> str:
     )
 
 
+def _capture(folder: Path, seed: int, size: tuple[int, int], scenes: int) -> Capture:
+    """The zoo capture of ``seed``: reused when ``folder`` holds it, else simulated there."""
+    if (folder / "rig.json").is_file():
+        cap = Capture.open(folder)
+        if len(cap.scans) == scenes:
+            return cap
+        raise SystemExit(f"{folder} holds another capture ({len(cap.scans)} scenes); remove it")
+    return Capture.open(simulate_zoo_capture(folder, seed, scenes=scenes, max_size=size))
+
+
 def run_seed(
-    seed: int, folder: Path, size: tuple[int, int], scenes: int, options: _Options
+    seed: int, folder: Path, size: tuple[int, int], scenes: int, methods: list[str]
 ) -> list[str]:
-    """Simulate, calibrate and identify one zoo seed; print its lines and return them."""
-    cap = Capture.open(simulate_zoo_capture(folder, seed, scenes=scenes, max_size=size))
-    lines = [f"Seed {seed}: {_rig_summary(cap)}; calibration {_calibrate(cap)}.", ""]
-    print(lines[0])
-    ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+    """Simulate (or reuse), calibrate and identify one zoo seed; print its lines, return them."""
+    cap = _capture(folder, seed, size, scenes)
+    res, why = _calibrate(cap)
+    summary = _calibration_summary(res) if res is not None else why
+    lines = [f"Seed {seed}: {_rig_summary(cap)}; calibration {summary}.", ""]
+    print(lines[0], flush=True)
+    ref = res.reference if res is not None and res.reference is not None else None
+    if ref is None:
+        ref = prepare_reference([cap.image(p) for p in cap.references], cap.num_slits)
+    rig = None
+    if res is not None and res.calibration.dot_projector is not None:
+        rig = rig_of(res.calibration)
     lines += [
-        "| seed | scene | object coverage | object wrong | object wrong, conf >= 0.5 | "
+        "| seed | scene | method | object coverage | object wrong | object wrong, conf >= 0.5 | "
         "objects lost: no centre / unidentified / left out | backdrop coverage | "
         "backdrop wrong | ms |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for p in cap.scans:
         img = cap.image(p)
-        t = time.perf_counter()
-        ident = _identify(img, ref, None, options)
-        dt = time.perf_counter() - t
         truth = np.load(cap.root / "truth" / f"{p.stem}.npz")
-        m = object_metrics(ident, truth["slit"], truth["object"])
-        o, b = m["object"], m["backdrop"]
-        lost = coverage_losses(ident, truth["slit"], mask=truth["object"])
-        share = {k: 100 * n / max(1, sum(lost.values())) for k, n in lost.items()}
-        lines.append(
-            f"| {seed} | {p.stem} | {100 * o['coverage']:.1f} % | {100 * o['wrong']:.2f} % | "
-            f"{100 * o['wrong_confident']:.2f} % | {share['no_centre']:.1f} / "
-            f"{share['segment_unidentified']:.1f} / {share['point_left_out']:.1f} % | "
-            f"{100 * b['coverage']:.1f} % | "
-            f"{100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
-        )
-        print(lines[-1])
-    return lines + [""]
-
-
-def _parse_options(ap: argparse.ArgumentParser, pairs: list[str]) -> _Options:
-    """``_Options`` with the ``NAME=VALUE`` pairs set (values of the field's type)."""
-    fields = _Options.__dataclass_fields__
-    kw = {}
-    for pair in pairs:
-        name, sep, value = pair.partition("=")
-        if not sep or name not in fields:
-            ap.error(f"--option must be NAME=VALUE with NAME one of {sorted(fields)}, got {pair!r}")
-        kind = type(getattr(_Options(), name))
-        try:
-            kw[name] = (
-                value if kind is str else (value.lower() == "true" if kind is bool else kind(value))
+        for method in methods:
+            cells = f"| {seed} | {p.stem} | {method} |"
+            try:
+                t = time.perf_counter()
+                ident = identify(img, ref, rig, options=IdentifyOptions(method=method))
+                dt = time.perf_counter() - t
+            except MultislitError as exc:
+                lines.append(cells + f" not run: {str(exc)[:100]} | | | | | | |")
+                print(lines[-1], flush=True)
+                continue
+            m = object_metrics(ident, truth["slit"], truth["object"])
+            o, b = m["object"], m["backdrop"]
+            lost = coverage_losses(ident, truth["slit"], mask=truth["object"])
+            share = {k: 100 * n / max(1, sum(lost.values())) for k, n in lost.items()}
+            lines.append(
+                cells + f" {100 * o['coverage']:.1f} % | {100 * o['wrong']:.2f} % | "
+                f"{100 * o['wrong_confident']:.2f} % | {share['no_centre']:.1f} / "
+                f"{share['segment_unidentified']:.1f} / {share['point_left_out']:.1f} % | "
+                f"{100 * b['coverage']:.1f} % | {100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
             )
-        except ValueError:
-            ap.error(f"--option {name} needs a {kind.__name__}, got {value!r}")
-    return _Options(**kw)
+            print(lines[-1], flush=True)
+    return lines + [""]
 
 
 def main() -> None:
@@ -138,41 +152,39 @@ def main() -> None:
         help="largest camera image, px (the rig is scaled down to fit; 1920 1080: full HD)",
     )
     ap.add_argument("--scenes", type=int, default=2, help="scenes per seed")
-    ap.add_argument("--keep", type=Path, default=None, help="write the captures here")
     ap.add_argument(
-        "--option",
-        action="append",
-        metavar="NAME=VALUE",
-        help="an identification mode to compare (repeatable), a field of "
-        "multislit.identify.matching._Options, e.g. template_half_width=1.0, search_px=2, "
-        "references=all, depth_margin=0.25",
+        "--method", nargs="+", choices=METHODS, default=list(METHODS), help="methods to run"
+    )
+    ap.add_argument(
+        "--keep", type=Path, default=None, help="keep the captures here (and reuse them)"
     )
     ap.add_argument(
         "--write", action="store_true", help="record the tables in benchmarks/RESULTS.md"
     )
     args = ap.parse_args()
-    options = _parse_options(ap, args.option or [])
-    if args.option and args.write:
-        ap.error("--write records the library's own identification: leave out --option")
     seeds = (
         list(range(HELD_OUT_START, HELD_OUT_START + args.held_out)) if args.held_out else args.seeds
     )
+    held_out = min(seeds) >= HELD_OUT_START
+    if not held_out and max(seeds) >= HELD_OUT_START:
+        ap.error(f"mix no tuning seeds (< {HELD_OUT_START}) with held-out ones")
     print(
-        f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px"
-        + (f", options {', '.join(args.option)}" if args.option else "")
+        f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px, "
+        f"methods {', '.join(args.method)}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
         lines = [
             f"Images at most {args.size[0]}x{args.size[1]} px, {args.scenes} scenes per seed; "
-            f"{'held-out' if args.held_out else 'tuning'} seeds {seeds}. Coverage: true "
+            f"{'held-out' if held_out else 'tuning'} seeds {seeds}. Coverage: true "
             "stripe-centre pixels with a point of the right slit; wrong: shares of the points.",
             "",
         ]
         for seed in seeds:
-            lines += run_seed(seed, root / f"zoo_{seed}", tuple(args.size), args.scenes, options)
+            folder = root / f"zoo_{seed}_{args.size[0]}x{args.size[1]}_{args.scenes}"
+            lines += run_seed(seed, folder, tuple(args.size), args.scenes, args.method)
     if args.write:
-        kind = "held_out" if args.held_out else "tuning"
+        kind = "held_out" if held_out else "tuning"
         write_section(
             f"bench_zoo_{kind}",
             f"Objects apart from the backdrop: zoo rigs and scenes ({kind.replace('_', '-')} seeds)",

@@ -54,6 +54,14 @@ def calibrated(small_capture: Path, tmp_path_factory: pytest.TempPathFactory) ->
     return cap
 
 
+@pytest.fixture(scope="session")
+def small_calibrated(small_capture: Path):
+    """``calibrate_capture(small_capture)``: camera, slit planes and dot projector (a few s)."""
+    from multislit.calibrate import calibrate_capture
+
+    return calibrate_capture(small_capture)
+
+
 @pytest.fixture()
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)

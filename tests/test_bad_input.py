@@ -395,9 +395,9 @@ def test_scan_image_calibration_path_is_refused(small_capture, small_reference):
         scan_image(img, small_reference, str(small_capture / "calibration.json"))
 
 
-def test_scan_without_slits_keeps_no_points(small_capture, small_reference):
+def test_scan_without_slits_keeps_no_points(small_capture, small_calibrated):
     cap = Capture.open(small_capture)
-    cal = _fake_calibration()
+    cal, small_reference = small_calibrated.calibration, small_calibrated.reference
     off = scan_image(cap.image(cap.markers_image), small_reference, cal, name="off")
     assert off.num_points == 0 and "no slit identified" in off.message
     assert "lasers on" in off.summary()
@@ -411,8 +411,8 @@ def test_scan_without_slits_keeps_no_points(small_capture, small_reference):
 
 
 @pytest.mark.slow
-def test_cli_scan_without_slits_exits_2(cap, tmp_path, capsys):
-    _fake_calibration().save(tmp_path / "cal.json")
+def test_cli_scan_without_slits_exits_2(cap, tmp_path, capsys, small_calibrated):
+    small_calibrated.calibration.save(tmp_path / "cal.json")
     black = tmp_path / "black.png"
     cv2.imwrite(str(black), np.zeros((512, 640), np.uint8))
     for image, message in (
@@ -425,6 +425,18 @@ def test_cli_scan_without_slits_exits_2(cap, tmp_path, capsys):
         assert rc == 2 and "1 of 1 scan(s) gave no points (no PLY written)" in line
         assert message in line
     assert not (tmp_path / "pts" / "markers.ply").exists()
+
+
+def test_cli_scan_without_a_dot_projector_says_what_to_do(cap, tmp_path, capsys):
+    """A calibration without the dot projector: identification by the dots' geometry cannot
+    run; one line says to recalibrate or use the templates, which then run."""
+    _fake_calibration().save(tmp_path / "cal.json")
+    args = ["--calibration", tmp_path / "cal.json", "-o", tmp_path / "pts"]
+    rc, _, err = _cli(capsys, "scan", cap, *args)
+    line = _one_error_line(err, "scan")
+    assert rc == 2 and "no dot projector" in line and "template" in line
+    rc, _, err = _cli(capsys, "scan", cap, *args, "--method", "template")
+    assert "no dot projector" not in err
 
 
 # --------------------------------------------------------------------------- holes from a PLY

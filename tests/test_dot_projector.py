@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from multislit.calibrate import Calibration, calibrate_capture
+from multislit.calibrate import Calibration
 from multislit.errors import CalibrationError
 from multislit.geometry.dots import DotProjector, dot_frame
 from multislit.io import Capture
@@ -19,8 +19,8 @@ from multislit.stripes.dots import DotCentres, dots_clear_of_stripes, find_dots,
 
 
 @pytest.fixture(scope="module")
-def calibrated(small_capture):
-    return calibrate_capture(small_capture)
+def calibrated(small_calibrated):
+    return small_calibrated
 
 
 def _true_rig(capture) -> SimulatedRig:

@@ -15,11 +15,13 @@ import multislit.identify.labelling as identify_module
 from multislit.errors import IdentificationError
 from multislit.identify import (
     curve_u,
-    identify,
     intersect_line_curves,
     normalise_patches,
     sample_patches,
     split_at_brightness_steps,
+)
+from multislit.identify import (
+    identify_template as identify,
 )
 from multislit.identify.labelling import _contradicted_by_dots, _identify, _segment_votes
 from multislit.identify.matching import (

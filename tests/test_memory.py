@@ -25,6 +25,7 @@ from multislit.calibrate import Calibration, SlitPlanes
 from multislit.geometry import MatrixCamera, PinholeCamera
 from multislit.io import Capture
 from multislit.reconstruct import scan_image
+from multislit.sim import RigSpec, SimulatedRig, true_dot_projector
 from multislit.stripes import extract_slits, refine_centres
 
 try:
@@ -158,13 +159,20 @@ def test_large_buffers_sees_a_float64_copy_and_not_a_float32_one():
 
 
 def _truth_calibration(cap_dir: Path) -> Calibration:
-    """The simulator's true camera and slit planes as a calibration."""
+    """The simulator's true camera, slit planes and dot projector as a calibration."""
     models = json.loads((cap_dir / "truth" / "models.json").read_text())
     cam = PinholeCamera.from_dict(models["camera"])
     planes = np.array(models["projector"]["planes"], np.float64)
     size = tuple(cam.image_size)
     sp = SlitPlanes(planes, np.zeros(len(planes)), np.full(len(planes), 10))
-    return Calibration(size, MatrixCamera(cam.matrix, image_size=size), refined=cam, slit_planes=sp)
+    rig = SimulatedRig.build(RigSpec.from_dict(Capture.open(cap_dir).rig["simulator"]["rig"]))
+    return Calibration(
+        size,
+        MatrixCamera(cam.matrix, image_size=size),
+        refined=cam,
+        slit_planes=sp,
+        dot_projector=true_dot_projector(rig),
+    )
 
 
 #: The identification's template work arrays: float32 stacks of one small patch per sample

@@ -19,10 +19,11 @@ from multislit.stripes import ExtractionOptions
 def test_options_round_trip_and_defaults(tmp_path):
     o = ScanOptions()
     assert o.extraction == ExtractionOptions() and o.extraction.channel is None
-    assert o.identification.min_confidence == 0.30 and o.refinement.min_angle_deg == 2.0
+    assert o.identification.method == "geometry" and o.identification.min_confidence is None
+    assert o.identification.confidence == 0.98 and o.refinement.min_angle_deg == 2.0
     custom = ScanOptions(
         ExtractionOptions(channel="auto", reject_texture=True, method="steger", k_sigma=6),
-        IdentifyOptions(min_confidence=0.5),
+        IdentifyOptions(method="template", min_confidence=0.5, depth_range=(500, 1500)),
         RefineOptions(refine_centres=False, min_angle_deg=5),
     )
     assert ScanOptions.from_dict(json.loads(json.dumps(custom.to_dict()))) == custom
@@ -98,8 +99,10 @@ def test_the_library_takes_the_same_options(calibrated):
     by_capture = ms.scan_capture(cap, cal, ref, images=[calibrated / "scans" / "holes.png"],
                                  options=photo)["holes"]  # fmt: skip
     assert np.array_equal(by_capture.points, res.points)
-    strict = ms.scan_image(img, ref, cal, ScanOptions(identification=IdentifyOptions(0.9)))
+    strict = ms.scan_image(
+        img, ref, cal, ScanOptions(identification=IdentifyOptions(min_confidence=0.999999))
+    )
     default = ms.scan_image(img, ref, cal)
-    assert strict.dropped["low_confidence"] > default.dropped["low_confidence"]
+    assert 0 < strict.num_points < default.num_points
     holes = ms.measure_holes(img, ref, cal, photo)
     assert holes.scan.options == photo and holes.measurable

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from multislit.errors import IdentificationError, MultislitError
-from multislit.identify import identify, prepare_reference
+from multislit.identify import identify_template as identify
+from multislit.identify import prepare_reference
 from multislit.identify.prior import prior_slits
 from multislit.io import Capture
 from multislit.sim import RigSpec, identification_metrics, simulate_sequence

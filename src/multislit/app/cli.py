@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 from multislit import __version__
@@ -336,6 +337,7 @@ _PICTURES_HELP = (
 
 def _scan_option_flags(p: argparse.ArgumentParser) -> None:
     """The flags of the scan's options (:class:`~multislit.reconstruct.ScanOptions`)."""
+    from multislit.identify import METHODS
     from multislit.stripes import CHANNEL_CHOICES
 
     p.add_argument(
@@ -353,11 +355,18 @@ def _scan_option_flags(p: argparse.ArgumentParser) -> None:
         "line on a checkerboard, a turntable, a textured object)",
     )
     p.add_argument(
+        "--method",
+        choices=METHODS,
+        help="how slits are identified: geometry (default: where the calibrated dot "
+        "projector's rays put the dots beside each piece of stripe, and its neighbours) or "
+        "template (the paper's template matching with the reference images)",
+    )
+    p.add_argument(
         "--options",
         metavar="FILE.json",
         help='the scan\'s options, stage by stage: {"extraction": {...}, '
-        '"identification": {...}, "refinement": {...}}; --channel and '
-        "--reject-texture override it",
+        '"identification": {...}, "refinement": {...}}; --channel, --reject-texture and '
+        "--method override it",
     )
 
 
@@ -371,7 +380,13 @@ def _scan_options(args: argparse.Namespace):
         changes["channel"] = args.channel
     if args.reject_texture is not None:
         changes["reject_texture"] = args.reject_texture
-    return options.with_extraction(**changes) if changes else options
+    if changes:
+        options = options.with_extraction(**changes)
+    if args.method is not None:
+        options = replace(
+            options, identification=replace(options.identification, method=args.method)
+        )
+    return options
 
 
 def _frame_options(p: argparse.ArgumentParser) -> None:

@@ -39,7 +39,7 @@ from multislit.identify import (
     OrderParams,
     apply_run_offsets,
     capture_reference,
-    identify,
+    identify_template,
     row_runs,
     run_offsets,
 )
@@ -80,7 +80,7 @@ def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
     if reference is None:
         reference = capture_reference(cap)
     # the anchors must be the dots' own evidence, not identification's order fill
-    return identify(image, reference, order_fill=False)
+    return identify_template(image, reference, order_fill=False)
 
 
 def _faces(cap: Capture, uv: F64, camera: Any) -> NDArray[np.intp]:

@@ -8,13 +8,20 @@
   the epipolar lines (normalised cross-correlation);
 - :mod:`~multislit.identify.segments`: the stripe segments' points, samples, ends and splits;
 - :mod:`~multislit.identify.order`: the slits' left-to-right order along the image rows;
-- :mod:`~multislit.identify.labelling`: :func:`identify`, votes per segment, confidence,
-  order rules.
+- :mod:`~multislit.identify.rig`, :mod:`~multislit.identify.evidence`,
+  :mod:`~multislit.identify.pieces`, :mod:`~multislit.identify.graph`,
+  :mod:`~multislit.identify.geometric`: identification by the dots' geometry (the default):
+  the calibrated dot rays predict the dots beside each piece of stripe under each slit; one
+  labelling of all pieces;
+- :mod:`~multislit.identify.labelling`: the paper's template matching (``method="template"``):
+  votes per segment, confidence, order rules;
+- :mod:`~multislit.identify.frame`: :func:`identify`, either method on one frame.
 """
 
-from multislit.identify.labelling import Identification, compile_kernels, identify
+from multislit.identify.frame import identify
+from multislit.identify.labelling import compile_kernels, identify_template
 from multislit.identify.matching import prepare_scoring, template_size
-from multislit.identify.options import IdentifyOptions
+from multislit.identify.options import METHODS, IdentifyOptions
 from multislit.identify.order import OrderParams, apply_run_offsets, row_runs, run_offsets
 from multislit.identify.patches import (
     WINDOW_SUMS,
@@ -35,10 +42,18 @@ from multislit.identify.reference import (
     intersect_line_curves,
     prepare_reference,
 )
+from multislit.identify.result import SOURCES, Identification, PieceLabels
+from multislit.identify.rig import RigGeometry, rig_geometry
 from multislit.identify.segments import split_at_brightness_steps
 
 __all__ = [
     "IdentifyOptions",
+    "METHODS",
+    "PieceLabels",
+    "SOURCES",
+    "RigGeometry",
+    "rig_geometry",
+    "identify_template",
     "row_runs",
     "run_offsets",
     "apply_run_offsets",

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -28,6 +27,7 @@ from multislit.identify.order import (
     order_violations,
 )
 from multislit.identify.reference import ReferenceSet
+from multislit.identify.result import Identification
 from multislit.identify.segments import (
     band_samples,
     by_segment,
@@ -73,50 +73,6 @@ _NO_CANDIDATE = -0.2
 def _junction_rows(half_height_px: int) -> int:
     """Rows left out next to a junction of two segments, for a template half height (px)."""
     return max(_TRIM_ROWS, int(math.ceil(_JUNCTION_TEMPLATE * half_height_px)))
-
-
-@dataclass(frozen=True, eq=False)
-class Identification:
-    """Result of identifying the slits of one image. Arrays are per stripe-centre point.
-
-    Attributes
-    ----------
-    u, v : (K,) float64, px, stripe centres
-    slit : (K,) int64, slit number 0..N-1, -1 where not identified
-    confidence : (K,) float64, 0..1 (0 where not identified)
-    segment : (K,) int64, segment id (the extraction's, with segments that join two slits'
-        stripes split; -1 for unlinked points)
-    peak, width : (K,) float64, stripe peak height (DN above background) and width (px)
-    num_segments : number of linked segments in the extraction
-    num_identified : number of segments given a slit
-    dropped : number of segments left unidentified, by reason ("too_short", "no_candidate",
-        "weak_match", "low_confidence", "order")
-    message : why nothing was identified (e.g. no slits in the image), else ""
-    extraction : the :class:`~multislit.stripes.SlitExtraction` the points come from
-    """
-
-    u: F64
-    v: F64
-    slit: I64
-    confidence: F64
-    segment: I64
-    peak: F64
-    width: F64
-    num_segments: int
-    num_identified: int
-    dropped: dict[str, int] = field(default_factory=dict)
-    message: str = ""
-    extraction: SlitExtraction | None = None
-
-    @property
-    def identified(self) -> NDArray[np.bool_]:
-        """(K,) bool, the points with a slit number."""
-        return self.slit >= 0
-
-    @property
-    def num_dropped(self) -> int:
-        """Number of segments left unidentified."""
-        return int(sum(self.dropped.values()))
 
 
 def _mean_difference(
@@ -209,7 +165,7 @@ def _segment_votes(
     return out
 
 
-def identify(
+def identify_template(
     image: ArrayLike,
     reference: ReferenceSet,
     *,
@@ -219,7 +175,8 @@ def identify(
     extraction: SlitExtraction | None = None,
     previous: Identification | None = None,
 ) -> Identification:
-    """Find the slits in one image and give each stripe-centre point its slit number.
+    """Find the slits in one image by the paper's template matching (:func:`identify`'s
+    ``method="template"``) and give each stripe-centre point its slit number.
 
     Parameters
     ----------
@@ -259,6 +216,12 @@ def identify(
     """
     if not 0.0 <= min_confidence <= 1.0:  # also catches NaN
         raise IdentificationError(f"min_confidence must be in [0, 1], got {min_confidence}")
+    if reference.epipole_problem:
+        raise IdentificationError(
+            "the template identification needs the dot projector's epipole, which the "
+            f"reference images did not give ({reference.epipole_problem}); identify by the "
+            "dots' geometry instead"
+        )
     if previous is not None:
         from multislit.identify.prior import check_previous  # (prior imports this module)
 
@@ -673,4 +636,4 @@ def compile_kernels() -> None:
     stripes = 200.0 * np.exp(-0.5 * ((np.arange(w) - us[:, None] - 1) / 1.3) ** 2).sum(axis=0)
     for scan_dots in (dots, np.where(np.abs(np.arange(w) - us[2]) < 12, 0, dots)):
         image = np.clip(10.0 + 1.2 * scan_dots + stripes, 0, 255).astype(np.uint8)
-        identify(image, reference)
+        identify_template(image, reference)

@@ -278,6 +278,8 @@ class ReferenceSet:
     dot_density : float, dots per px^2 within the slit field (sizes the templates)
     stripe_width_px, dot_size_px : float, measured in the references
     epipole_residual_px : float, RMS distance of the matched dot tracks to the epipole's lines
+    epipole_problem : why the epipole could not be estimated ('' when it was; then
+        ``epipole`` is NaN and only identification by the dots' geometry can be used)
 
     Derived data that depends only on the references (e.g. :meth:`window_sums`) is computed on
     first use and kept with the set, so it is paid once per rig, not per scan.
@@ -295,6 +297,7 @@ class ReferenceSet:
     dot_size_px: float
     epipole_residual_px: float
     dot_density: float = 0.02  # dots per px^2 in the slit field of the references
+    epipole_problem: str = ""
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def window_sums(self, half_w: int, half_h: int) -> F32:
@@ -374,6 +377,7 @@ class ReferenceSet:
             dot_size_px=self.dot_size_px,
             epipole_residual_px=self.epipole_residual_px,
             dot_density=self.dot_density,
+            epipole_problem=self.epipole_problem,
             schema="multislit-reference/1",
         )
         write_bytes_atomic(p, buf.getvalue())
@@ -408,6 +412,7 @@ class ReferenceSet:
             float(z["dot_size_px"]),
             float(z["epipole_residual_px"]),
             float(z["dot_density"]),
+            str(z["epipole_problem"]) if "epipole_problem" in z else "",
         )
 
 
@@ -681,7 +686,11 @@ def prepare_reference(
     density = float(
         np.median([_dot_density(d, c, vr) for d, c, vr in zip(dots_a, curves_a, vr_a, strict=True)])
     )
-    epi, rms = estimate_epipole(curves_a, vr_a, dots_a, sp, h, density)
+    try:
+        epi, rms = estimate_epipole(curves_a, vr_a, dots_a, sp, h, density)
+        problem = ""
+    except ReferenceImageError as exc:  # only the template method needs it
+        epi, rms, problem = np.full(3, np.nan), float("nan"), str(exc)
     return ReferenceSet(
         (int(w), int(h)),
         int(num_slits),
@@ -695,6 +704,7 @@ def prepare_reference(
         float(np.median(dsz)),
         rms,
         density,
+        problem,
     )
 
 

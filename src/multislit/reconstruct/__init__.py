@@ -5,6 +5,7 @@ from multislit.reconstruct.scan import (
     CALIBRATION_FILE,
     ScanResult,
     load_capture_calibration,
+    rig_of,
     scan_capture,
     scan_image,
     scan_image_for_holes,
@@ -25,4 +26,5 @@ __all__ = [
     "scan_image_for_holes",
     "load_capture_calibration",
     "scan_capture",
+    "rig_of",
 ]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -23,7 +24,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from multislit.calibrate import Calibration
 from multislit.errors import CalibrationError, MeasurementError
-from multislit.identify import Identification, ReferenceSet, capture_reference, identify
+from multislit.identify import (
+    Identification,
+    ReferenceSet,
+    RigGeometry,
+    capture_reference,
+    identify,
+    identify_template,
+    rig_geometry,
+)
 from multislit.io import Capture
 from multislit.io.paths import as_path
 from multislit.reconstruct.options import ScanOptions, as_scan_options
@@ -36,6 +45,7 @@ Progress = Callable[[int, int, str], None]
 
 __all__ = [
     "ScanResult",
+    "rig_of",
     "scan_image",
     "scan_image_for_holes",
     "scan_capture",
@@ -304,6 +314,35 @@ def _check_scan_inputs(
     return size, planes
 
 
+_RIGS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def rig_of(calibration: Calibration) -> RigGeometry:
+    """The calibrated rig as identification by the dots' geometry reads it (camera, slit
+    planes, dot projector), prepared once per calibration and kept.
+
+    Raises
+    ------
+    CalibrationError
+        The calibration has no refined camera, no slit planes or no dot projector.
+    """
+    rig = _RIGS.get(calibration)
+    if rig is None:
+        if calibration.dot_projector is None or calibration.refined is None:
+            raise CalibrationError(
+                "the calibration has no dot projector (the identification by the dots' geometry "
+                "needs it): recalibrate with the reference images (multislit calibrate), or "
+                "identify by templates (method 'template')"
+            )
+        if calibration.slit_planes is None:
+            raise CalibrationError("the calibration has no slit planes; recalibrate")
+        rig = rig_geometry(
+            calibration.refined, calibration.slit_planes.planes, calibration.dot_projector
+        )
+        _RIGS[calibration] = rig
+    return rig
+
+
 def _not_a_scan(ident: Identification) -> str:
     """Why the identification does not describe a scan of this rig's slits, or ''.
 
@@ -347,18 +386,23 @@ def _scan(
     if previous is not None:
         if len(previous.points) and tuple(previous.image_size) == tuple(size):
             prior = previous.identification  # a frame that was no scan is no prior
+    id_opts = opts.identification
+    rig = rig_of(calibration) if id_opts.method == "geometry" else None
     t0 = time.perf_counter()
     extraction = extract_slits(
         image, reference.stripe_width_px, reference.dot_size_px, **ex_opts.kwargs()
     )
-    ident = identify(
-        image,
-        reference,
-        min_confidence=opts.identification.min_confidence,
-        end_order=end_order,
-        extraction=extraction,
-        previous=prior,
-    )
+    if id_opts.method == "template":
+        ident = identify_template(
+            image,
+            reference,
+            min_confidence=id_opts.confidence,
+            end_order=end_order,
+            extraction=extraction,
+            previous=prior,
+        )
+    else:
+        ident = identify(image, reference, rig, options=id_opts, extraction=extraction)
     m = ident.slit >= 0
     problem = _not_a_scan(ident)
     if problem:
@@ -411,15 +455,17 @@ def scan_image(
     reference : the prepared :class:`~multislit.identify.ReferenceSet`
     calibration : the rig's :class:`~multislit.calibrate.Calibration` with slit planes
     options : :class:`~multislit.reconstruct.ScanOptions`, optional
-        The extraction's (colour plane, photo mode, ...), the identification's and the
-        refinement's options (re-centring the identified points, the least angle between a
-        line of sight and a slit plane). Default: ``ScanOptions()``.
+        The extraction's (colour plane, photo mode, ...), the identification's (the method:
+        by the dots' geometry, the default, which needs a calibration with a dot projector;
+        or by templates) and the refinement's options (re-centring the identified points, the
+        least angle between a line of sight and a slit plane). Default: ``ScanOptions()``.
     name : str
         A name for messages and the summary. Default ''.
     previous : ScanResult
-        The result of the previous frame of a sequence (the same rig, frames in order): its
-        slit labels are a prior that the identification checks instead of searching every
-        slit (see :func:`~multislit.identify.identify`'s ``previous``); a frame that gave no
+        The result of the previous frame of a sequence (the same rig, frames in order): with
+        the template method its slit labels are a prior that the identification checks
+        instead of searching every slit (see
+        :func:`~multislit.identify.identify_template`'s ``previous``); a frame that gave no
         points is not used. Default None: the full search (single images).
 
     Returns
@@ -433,7 +479,8 @@ def scan_image(
     CalibrationError
         ``calibration`` is not a :class:`~multislit.calibrate.Calibration`, the image size
         differs from the calibration's, or the calibration has no slit planes or a different
-        number of slits than the reference.
+        number of slits than the reference, or (identifying by the dots' geometry) no dot
+        projector.
     MeasurementError
         ``reference`` is not a :class:`~multislit.identify.ReferenceSet`, or was prepared for
         another image size, ``previous`` is not a :class:`ScanResult`, or ``options`` is not

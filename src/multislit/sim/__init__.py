@@ -28,7 +28,7 @@ from multislit.sim.primitives import (
     noise_texture,
 )
 from multislit.sim.render import Rendered, render
-from multislit.sim.rig import RigSpec, SimulatedRig, dense_rig
+from multislit.sim.rig import RigSpec, SimulatedRig, dense_rig, true_dot_projector
 from multislit.sim.scene import SCENES, TargetDesign, make_scene, reference_board, standard_object
 from multislit.sim.sequence import SimulatedSequence, moving_scene, simulate_sequence
 from multislit.sim.simulate import Progress, simulate_capture
@@ -66,5 +66,6 @@ __all__ = [
     "simulate_sequence",
     "simulate_zoo_capture",
     "standard_object",
+    "true_dot_projector",
     "zoo_target",
 ]

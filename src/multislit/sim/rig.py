@@ -17,6 +17,8 @@ from numpy.typing import NDArray
 
 from multislit.errors import MultislitError
 from multislit.geometry import PinholeCamera, look_at, rvec_from_rotation
+from multislit.geometry.dots import DotProjector as GeometricDotProjector
+from multislit.geometry.dots import dot_frame
 
 F64 = NDArray[np.float64]
 
@@ -330,3 +332,26 @@ def _make_dots(spec: RigSpec, proj: SlitProjector) -> DotProjector:
     dw = dp @ proj.R
     bright = rng.uniform(0.55, 1.0, n)
     return DotProjector(origin, dw, bright, d.dot_sigma_mrad * 1e-3)
+
+
+def true_dot_projector(rig: SimulatedRig) -> GeometricDotProjector:
+    """The simulated rig's dot projector as the calibration's model
+    (:class:`~multislit.geometry.DotProjector`): the true source and rays, the frame's y along
+    the slit projector's axis, and the reference boards' depths along the camera's axis."""
+    d = rig.dots.directions
+    frame = dot_frame(d, rig.projector.axis[1])
+    p = d @ frame.T
+    w, h = rig.camera.image_size
+    o, ray = rig.camera.rays(np.array([[(w - 1) / 2.0, (h - 1) / 2.0]]))
+    depths = []
+    for dist in rig.spec.reference_distances:
+        z = float(rig.spec.camera.position[2]) - float(dist)  # the board's plane Z = z
+        t = (z - o[0, 2]) / ray[0, 2]
+        depths.append(float(rig.camera.to_camera(o + t * ray)[0, 2]))
+    return GeometricDotProjector(
+        rig.dots.origin,
+        frame,
+        np.arctan2(p[:, 0], p[:, 2]),
+        np.arcsin(np.clip(p[:, 1], -1.0, 1.0)),
+        reference_depths=np.array(depths),
+    )

@@ -1,0 +1,805 @@
+"""Evidence from the dots' geometry: how well each slit explains the dots beside a stripe piece.
+
+Under slit k, every stripe point of a piece is a 3D point (its line of sight meets plane k),
+so the piece is a 3D curve. The dots that must land beside that curve are known rays of the
+dot projector (:class:`~multislit.geometry.DotProjector`): those whose angle across the slits
+lies within the slit's band (``half_band``) and whose angle along the slits lies within the
+curve's. Each lands where its ray meets the surface. Along the curve the surface is known;
+across it, it is not: a surface turned away from the dot projector puts a dot at a range
+``r_c (1 + g delta)``, ``r_c`` the curve's range at the dot's angle along the slits, ``delta``
+its angle across from the curve, ``g`` the surface's slope across the stripe (tan of its
+tilt). Each predicted dot is projected into the image for the slopes in ``[-G, G]``: a short
+path, a parabola in ``g``. It is **found** at the slopes where an observed dot lies within
+:data:`MATCH_TOL_PX` of the path (the dots found by :func:`~multislit.stripes.find_dots`,
+speckle on the stripes left out).
+
+One log-likelihood ratio per (window of a piece, slit, side of the stripe) against "the dots
+there are background": each predicted dot found adds ``log(p_det / p_false)``, each missed
+``log((1 - p_det) / (1 - p_false))``; ``p_false``, the chance that an observed dot lies that
+close to a place by chance, is measured around it on the frame (:func:`false_match_map`),
+``p_det`` is
+:data:`P_DETECT`. The slope is marginalised over a uniform prior of the surface's tilt, so a
+slope that finds a few dots by chance pays for its freedom. Dots predicted outside the image
+count neither way. A slit that puts a window outside the measuring volume is ruled out (NaN).
+
+Between two pieces side by side in the rows (:func:`gap_evidence`), slits k and k + 1 of one
+surface leave no freedom: the surface between them is the one through both stripes, and every
+dot between them has one predicted place.
+
+Units: px, mm, rad.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from multislit.identify.rig import RigGeometry
+from multislit.stripes.dots import (
+    MIN_DOT_RATIO,
+    STRIPE_CLEARANCE,
+    DotCentres,
+    dots_clear_of_stripes,
+    find_dots,
+    stripe_maps,
+)
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+#: Largest slope across the stripe (tan of the surface's tilt) a window may take.
+SLOPE_MAX = 3.0
+#: A predicted dot is found when an observed dot lies within this many px of its place.
+MATCH_TOL_PX = 1.5
+#: Chance that a dot the rays predict on a lit surface is found in the image, clear of the
+#: stripes and near one (where a dot must outshine the speckle on the stripe).
+P_DETECT = (0.8, 0.55)
+#: Tilts of the surface across the stripe tried on either side of 0 (up to atan(SLOPE_MAX)).
+_SLOPE_STEPS = 35
+#: The frame's density of dots weighs in the local one as much as this many px of the place's
+#: own neighbourhood (a place with few pixels of a zone around it takes the frame's density) ...
+_PRIOR_AREA = 400.0
+#: ... and a chance match is never taken as less likely than this.
+_MIN_P_FALSE = 0.01
+#: Cell of the observed dots' look-up grid, px.
+_CELL = 4.0
+#: Most records of found dots of one window and slit.
+_MAX_CAND = 4096
+
+
+@dataclass(frozen=True, eq=False)
+class DotEvidence:
+    """Per window of stripe points, per slit and per side of the stripe, how well the slit
+    explains the dots.
+
+    Attributes
+    ----------
+    llr : (W, N, 2) float32, log-likelihood ratio of slit k for the dots on the left (0) and
+        right (1) of window w, against their being background, the slope across the stripe
+        marginalised; NaN where slit k puts the window outside the measuring volume (or has no
+        plane)
+    found : (W, N, 2) int16, predicted dots found at the best slope
+    usable : (W, N, 2) int16, predicted dots that could be seen (in the image)
+    slope : (W, N, 2) float32, the best slope across the stripe
+    """
+
+    llr: F32
+    found: NDArray[np.int16]
+    usable: NDArray[np.int16]
+    slope: F32
+
+
+@dataclass(frozen=True, eq=False)
+class GapEvidence:
+    """Per gap between two stripe pieces side by side in the rows (a on the left, b on the
+    right) and per slit k of a (k + 1 of b), the dots between them.
+
+    Attributes
+    ----------
+    fixed : (P, N) float32, log-likelihood ratio of the dots between the pieces when they are
+        slits k and k + 1 of one surface: the surface between them is the one through both
+        stripes, so every dot's place is predicted without a free slope; NaN where either
+        piece leaves the measuring volume (and for k = N - 1)
+    free_a, free_b : (P, N) float32, the same dots as :class:`DotEvidence` scores them: those
+        nearer a with a free slope about a (slit k), those nearer b about b (slit k + 1)
+    graze : (P, N) float32, |cos| of the angle between the surface through both stripes
+        (midway along their shared rows) and the camera's or the dot source's line of sight,
+        the larger: near 1 the "surface" is a step in depth
+    """
+
+    fixed: F32
+    free_a: F32
+    free_b: F32
+    graze: F32
+
+    @property
+    def bonus(self) -> F32:
+        """(P, N) float32: how much more the dots between the pieces say for (k, k + 1) on
+        one surface than for each piece on its own (NaN: not a hypothesis)."""
+        return self.fixed - self.free_a - self.free_b
+
+
+def false_match_map(
+    dots: DotCentres,
+    near: NDArray[np.bool_],
+    distance: F32,
+    clearance_px: float,
+    radius_px: float,
+) -> F32:
+    """(H, W) float32: the chance that an observed dot lies within :data:`MATCH_TOL_PX` of each
+    place by chance, from the density of the observed dots in the square of half side
+    ``radius_px`` around it, counted apart near the stripes (closer than ``clearance_px``) and
+    clear of them; between 1e-3 and 0.5."""
+    h, w = distance.shape
+    zone_near = distance < clearance_px
+    r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
+    c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
+    k = 2 * max(1, int(round(radius_px))) + 1
+    out = np.empty((h, w), np.float32)
+    for zone, sel in ((zone_near, near), (~zone_near, ~near)):
+        cnt = np.zeros((h, w), np.float32)
+        np.add.at(cnt, (r[sel], c[sel]), 1.0)
+        n = cv2.boxFilter(cnt, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        area = cv2.boxFilter(
+            zone.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT
+        )
+        # the zone's density over the frame weighs as much as _PRIOR_AREA px of its own
+        rho0 = np.count_nonzero(sel) / max(np.count_nonzero(zone), 1)
+        rho = (n + np.float32(_PRIOR_AREA * rho0)) / (area + np.float32(_PRIOR_AREA))
+        rho *= np.float32(-math.pi * MATCH_TOL_PX**2)
+        out[zone] = (np.float32(1.0) - np.exp(rho))[zone]
+    return np.clip(out, _MIN_P_FALSE, 0.5)
+
+
+def dot_grid(
+    dots: DotCentres, shape: tuple[int, int], cell: float = _CELL
+) -> tuple[NDArray[np.intp], NDArray[np.intp], int, int]:
+    """The observed dots in a grid of ``cell`` px: (order (M,), cell_start (C+1,), nx, ny):
+    the dots of cell (cy, cx) are ``order[cell_start[cy*nx+cx]:cell_start[cy*nx+cx+1]]``."""
+    h, w = shape
+    nx, ny = int(math.ceil(w / cell)), int(math.ceil(h / cell))
+    cx = np.clip((dots.u / cell).astype(np.intp), 0, nx - 1)
+    cy = np.clip((dots.v / cell).astype(np.intp), 0, ny - 1)
+    key = cy * nx + cx
+    order = np.argsort(key, kind="stable").astype(np.intp)
+    start = np.searchsorted(key[order], np.arange(nx * ny + 1)).astype(np.intp)
+    return order, start, nx, ny
+
+
+@dataclass(frozen=True, eq=False)
+class FrameDots:
+    """The observed dots of one frame as the evidence kernels read them.
+
+    Attributes
+    ----------
+    dots : DotCentres, speckle on the stripes left out
+        (:func:`~multislit.stripes.dots.dots_clear_of_stripes`)
+    near : (M,) bool, the dots closer than ``clearance_px`` to a stripe centre
+    distance : (H, W) float32, px, distance to the nearest stripe centre
+    clearance_px : px
+    p_false : (H, W) float32, :func:`false_match_map`
+    grid : the dots' look-up grid (:func:`dot_grid`)
+    """
+
+    dots: DotCentres
+    near: NDArray[np.bool_]
+    distance: F32
+    clearance_px: float
+    p_false: F32
+    grid: tuple
+
+    @classmethod
+    def make(
+        cls,
+        dots: DotCentres,
+        near: NDArray[np.bool_],
+        distance: F32,
+        clearance_px: float,
+        density_radius_px: float,
+    ) -> FrameDots:
+        """The frame's dots with their chance-match map (over squares of half side
+        ``density_radius_px``) and look-up grid."""
+        pf = false_match_map(dots, near, distance, clearance_px, density_radius_px)
+        return cls(dots, near, distance, float(clearance_px), pf, dot_grid(dots, distance.shape))
+
+    def kernel_args(self) -> tuple:
+        g_order, g_start, gnx, gny = self.grid
+        return (
+            self.dots.u,
+            self.dots.v,
+            g_order,
+            g_start,
+            gnx,
+            gny,
+            _CELL,
+            self.distance,
+            self.clearance_px,
+            self.p_false,
+            np.array(P_DETECT),
+            MATCH_TOL_PX,
+            SLOPE_MAX,
+            _SLOPE_STEPS,
+        )
+
+
+def _rig_args(rig: RigGeometry) -> tuple:
+    """The rig as the kernels read it: (planes, dot source, frame, phi, psi, the dots' look-up
+    order and bins, half bands) and (camera, R, t, distortion, near and far depth)."""
+    cam, R, t, dist = rig.camera_arrays()
+    d_order, b_start, phi0, bw = rig.dot_index()
+    return (
+        np.ascontiguousarray(rig.planes),
+        rig.dots.source,
+        np.ascontiguousarray(rig.dots.frame),
+        rig.dots.phi,
+        rig.dots.psi,
+        d_order,
+        b_start,
+        phi0,
+        bw,
+        rig.half_band,
+    ), (cam, np.ascontiguousarray(R), t, dist, float(rig.depth_range[0]), float(rig.depth_range[1]))
+
+
+def dot_evidence(
+    rig: RigGeometry,
+    rays: F64,
+    order: NDArray[np.intp],
+    win_start: NDArray[np.intp],
+    frame: FrameDots,
+    hypotheses: NDArray[np.bool_] | None = None,
+) -> DotEvidence:
+    """The dots' evidence for every window of stripe points, every slit and both sides.
+
+    Parameters
+    ----------
+    rig : the prepared rig (:func:`~multislit.identify.rig.rig_geometry`)
+    rays : (K, 3) float64, unit lines of sight of the stripe points (world frame)
+    order : (P,) intp, stripe point indices, window after window
+    win_start : (W+1,) intp, window w holds ``order[win_start[w]:win_start[w+1]]``
+    frame : the frame's dots (:class:`FrameDots`)
+    hypotheses : (W, N) bool, the slits to score per window; default all
+
+    Returns
+    -------
+    DotEvidence
+    """
+    n = rig.num_slits
+    nw = len(win_start) - 1
+    if hypotheses is None:
+        hypotheses = np.ones((nw, n), bool)
+    llr = np.full((nw, n, 2), np.nan, np.float32)
+    found = np.zeros((nw, n, 2), np.int16)
+    used = np.zeros((nw, n, 2), np.int16)
+    slope = np.zeros((nw, n, 2), np.float32)
+    if nw:
+        (planes, O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb), cam = _rig_args(rig)
+        _window_kernel(
+            rig.camera.centre,
+            np.ascontiguousarray(rays, np.float64),
+            order.astype(np.intp),
+            win_start.astype(np.intp),
+            planes,
+            np.ascontiguousarray(hypotheses),
+            O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb, float(rig.phi_sign),
+            *cam,
+            *frame.kernel_args(),
+            llr,
+            found,
+            used,
+            slope,
+        )  # fmt: skip
+    return DotEvidence(llr, found, used, slope)
+
+
+def gap_evidence(
+    rig: RigGeometry,
+    rays: F64,
+    a_order: NDArray[np.intp],
+    a_start: NDArray[np.intp],
+    b_order: NDArray[np.intp],
+    b_start: NDArray[np.intp],
+    frame: FrameDots,
+) -> GapEvidence:
+    """The dots between pieces side by side in the rows, as one surface and apart.
+
+    Parameters
+    ----------
+    rig : the prepared rig
+    rays : (K, 3) float64, unit lines of sight of the stripe points
+    a_order, a_start : gap p's left piece has the points ``a_order[a_start[p]:a_start[p+1]]``
+        (those in the rows it shares with the right piece)
+    b_order, b_start : the same for the right piece
+    frame : the frame's dots
+
+    Returns
+    -------
+    GapEvidence
+    """
+    n = rig.num_slits
+    ng = len(a_start) - 1
+    fixed = np.full((ng, n), np.nan, np.float32)
+    free_a = np.full((ng, n), np.nan, np.float32)
+    free_b = np.full((ng, n), np.nan, np.float32)
+    graze = np.full((ng, n), np.nan, np.float32)
+    if ng:
+        (planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb), cam = _rig_args(rig)
+        _gap_kernel(
+            rig.camera.centre,
+            np.ascontiguousarray(rays, np.float64),
+            a_order.astype(np.intp),
+            a_start.astype(np.intp),
+            b_order.astype(np.intp),
+            b_start.astype(np.intp),
+            planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb,
+            *cam,
+            *frame.kernel_args(),
+            fixed,
+            free_a,
+            free_b,
+            graze,
+        )  # fmt: skip
+    return GapEvidence(fixed, free_a, free_b, graze)
+
+
+@njit(cache=True, inline="always")
+def _project(x, y, z, cam, R, t, dist):
+    """World point -> pixel (u, v) with OpenCV's distortion; (nan, nan) behind the camera."""
+    xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+    yc = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+    zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+    if zc <= 1e-9:
+        return np.nan, np.nan
+    a = xc / zc
+    b = yc / zc
+    r2 = a * a + b * b
+    rad = 1.0 + r2 * (dist[0] + r2 * (dist[1] + r2 * dist[4]))
+    ad = a * rad + 2.0 * dist[2] * a * b + dist[3] * (r2 + 2.0 * a * a)
+    bd = b * rad + dist[2] * (r2 + 2.0 * b * b) + 2.0 * dist[3] * a * b
+    return cam[0] * ad + cam[2], cam[1] * bd + cam[3]
+
+
+@njit(cache=True)
+def _curve(C, rays, order, a0, nt, plane, O, F, R, t, ps, ph, rr, idx):
+    """The stripe points ``order[a0:a0+nt]`` under a slit plane (4,): their angles (``ph``
+    across, ``ps`` along) and range ``rr`` seen from the dot source, and ``idx`` their order
+    by ``ps``. Returns (ok, mean camera depth); not ok where a line of sight misses the plane
+    or meets it behind the camera."""
+    nx_, ny_, nz_, nd_ = plane[0], plane[1], plane[2], plane[3]
+    if not np.isfinite(nx_):
+        return False, 0.0
+    num = -(nx_ * C[0] + ny_ * C[1] + nz_ * C[2] + nd_)
+    zsum = 0.0
+    for i in range(nt):
+        p = order[a0 + i]
+        den = nx_ * rays[p, 0] + ny_ * rays[p, 1] + nz_ * rays[p, 2]
+        if abs(den) < 1e-12:
+            return False, 0.0
+        s = num / den
+        if s <= 0:
+            return False, 0.0
+        X = C[0] + s * rays[p, 0]
+        Y = C[1] + s * rays[p, 1]
+        Z = C[2] + s * rays[p, 2]
+        zsum += R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
+        qx, qy, qz = X - O[0], Y - O[1], Z - O[2]
+        lx = F[0, 0] * qx + F[0, 1] * qy + F[0, 2] * qz
+        ly = F[1, 0] * qx + F[1, 1] * qy + F[1, 2] * qz
+        lz = F[2, 0] * qx + F[2, 1] * qy + F[2, 2] * qz
+        rn = math.sqrt(lx * lx + ly * ly + lz * lz)
+        ph[i] = math.atan2(lx, lz)
+        ps[i] = math.asin(min(1.0, max(-1.0, ly / rn)))
+        rr[i] = rn
+        idx[i] = i
+    for i in range(1, nt):  # by psi (insertion sort: the points come nearly in order)
+        j = i
+        while j > 0 and ps[idx[j - 1]] > ps[idx[j]]:
+            tmp = idx[j - 1]
+            idx[j - 1] = idx[j]
+            idx[j] = tmp
+            j -= 1
+    return True, zsum / nt
+
+
+@njit(cache=True, inline="always")
+def _at(ps, ph, rr, idx, nt, psj):
+    """The curve's (phi, range) at ``psj``, linear between its points sorted by ``psi``."""
+    m = 0
+    while m < nt - 2 and ps[idx[m + 1]] < psj:
+        m += 1
+    i0 = idx[m]
+    i1 = idx[min(m + 1, nt - 1)]
+    span = ps[i1] - ps[i0]
+    f = (psj - ps[i0]) / span if span > 1e-15 else 0.0
+    f = min(1.0, max(0.0, f))
+    return ph[i0] + f * (ph[i1] - ph[i0]), rr[i0] + f * (rr[i1] - rr[i0])
+
+
+@njit(cache=True, inline="always")
+def _direction(phi, psi, F):
+    """World unit direction of the dot-frame angles (phi, psi)."""
+    cp = math.cos(psi)
+    lx, ly, lz = math.sin(phi) * cp, math.sin(psi), math.cos(phi) * cp
+    return (
+        F[0, 0] * lx + F[1, 0] * ly + F[2, 0] * lz,
+        F[0, 1] * lx + F[1, 1] * ly + F[2, 1] * lz,
+        F[0, 2] * lx + F[1, 2] * ly + F[2, 2] * lz,
+    )
+
+
+@njit(cache=True, inline="always")
+def _weights(u0, v0, w, h, distance, clearance, p_false, p_det):
+    """(usable, log-ratio of a found dot, log-ratio of a missed one) of a dot predicted at
+    (u0, v0): usable inside the image; the chance of a false match read at its place."""
+    if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
+        return False, 0.0, 0.0
+    iv = int(v0 + 0.5)
+    iu = int(u0 + 0.5)
+    zone = 1 if distance[iv, iu] < clearance else 0
+    pf = p_false[iv, iu]
+    return True, math.log(p_det[zone] / pf), math.log((1.0 - p_det[zone]) / (1.0 - pf))
+
+
+@njit(cache=True)
+def _path_slopes(u0, v0, bu, bv, cu, cv, G, tol, ou, ov, g_order, g_start, gnx, gny, cell,
+                 mg, mt):  # fmt: skip
+    """The slopes at which an observed dot lies within ``tol`` px of the path ``p(g) = p0 + b g
+    + c g^2``, g in [-G, G]: each such dot's slope ``mg`` and its tolerance ``mt`` (the slopes
+    within ``mt`` of ``mg`` keep it within about ``tol``). Returns how many were recorded."""
+    um = u0 - bu * G + cu * G * G
+    vm = v0 - bv * G + cv * G * G
+    up = u0 + bu * G + cu * G * G
+    vp = v0 + bv * G + cv * G * G
+    cx0 = max(0, int((min(u0, um, up) - tol) / cell))
+    cx1 = min(gnx - 1, int((max(u0, um, up) + tol) / cell))
+    cy0 = max(0, int((min(v0, vm, vp) - tol) / cell))
+    cy1 = min(gny - 1, int((max(v0, vm, vp) + tol) / cell))
+    speed2 = bu * bu + bv * bv
+    nm = 0
+    for cy in range(cy0, cy1 + 1):
+        for cx in range(cx0, cx1 + 1):
+            cidx = cy * gnx + cx
+            for e in range(g_start[cidx], g_start[cidx + 1]):
+                o = g_order[e]
+                if speed2 > 1e-12:
+                    g = ((ou[o] - u0) * bu + (ov[o] - v0) * bv) / speed2
+                    g = min(G, max(-G, g))
+                    tu = bu + 2.0 * cu * g
+                    tv = bv + 2.0 * cv * g
+                    tt = tu * tu + tv * tv
+                    pu = u0 + bu * g + cu * g * g
+                    pv = v0 + bv * g + cv * g * g
+                    g = min(G, max(-G, g + ((ou[o] - pu) * tu + (ov[o] - pv) * tv) / tt))
+                    pu = u0 + bu * g + cu * g * g
+                    pv = v0 + bv * g + cv * g * g
+                    dd = math.sqrt((ou[o] - pu) ** 2 + (ov[o] - pv) ** 2)
+                    gt = tol / math.sqrt(tt)
+                else:
+                    g = 0.0
+                    dd = math.sqrt((ou[o] - u0) ** 2 + (ov[o] - v0) ** 2)
+                    gt = 1e9
+                if dd <= tol and nm < len(mg):
+                    mg[nm] = g
+                    mt[nm] = gt
+                    nm += 1
+    return nm
+
+
+@njit(cache=True)
+def _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx, gny, cell,
+                 distance, clearance, p_false, p_det, gvals, mg, mt, score, count):  # fmt: skip
+    """Add one predicted dot to the slope grid ``gvals`` (S,): its place at each slope on the
+    path ``p(g)`` (the parabola through (um, vm), (u0, v0), (up, vp) at g = -G, 0, G) is found
+    when an observed dot lies within ``tol`` px; ``score`` (S,) gains the log-ratio of found or
+    missed there (with the chance of a false match read at that place), ``count`` (S,) the
+    found dots. Places outside the image count neither way. ``mg``, ``mt`` are work space."""
+    h, w = distance.shape
+    bu = (up - um) / (2.0 * G)
+    bv = (vp - vm) / (2.0 * G)
+    cu = (up + um - 2.0 * u0) / (2.0 * G * G)
+    cv = (vp + vm - 2.0 * v0) / (2.0 * G * G)
+    nm = _path_slopes(u0, v0, bu, bv, cu, cv, G, tol, ou, ov, g_order, g_start, gnx, gny,
+                      cell, mg, mt)  # fmt: skip
+    for gi in range(len(gvals)):
+        g = gvals[gi]
+        pu = u0 + bu * g + cu * g * g
+        pv = v0 + bv * g + cv * g * g
+        if not (pu >= 1.0 and pu <= w - 2.0 and pv >= 1.0 and pv <= h - 2.0):
+            continue
+        iv = int(pv + 0.5)
+        iu = int(pu + 0.5)
+        zone = 1 if distance[iv, iu] < clearance else 0
+        pf = p_false[iv, iu]
+        hit = False
+        for e in range(nm):
+            if abs(mg[e] - g) <= mt[e]:
+                hit = True
+                break
+        if hit:
+            score[gi] += math.log(p_det[zone] / pf)
+            count[gi] += 1
+        else:
+            score[gi] += math.log((1.0 - p_det[zone]) / (1.0 - pf))
+
+
+@njit(cache=True)
+def _log_mean_exp(x):
+    """log(mean(exp(x))) of a 1-D array, and the index of its largest value."""
+    best = 0
+    for i in range(1, len(x)):
+        if x[i] > x[best]:
+            best = i
+    acc = 0.0
+    for i in range(len(x)):
+        acc += math.exp(x[i] - x[best])
+    return x[best] + math.log(acc / len(x)), best
+
+
+@njit(cache=True)
+def _window_kernel(
+    C, rays, order, win_start, planes, hyp, O, F, dphi, dpsi, d_order, b_start, phi0, bw,
+    half_band, phi_sign, cam, R, t, dist, zmin, zmax, ou, ov, g_order, g_start, gnx, gny,
+    cell, distance, clearance, p_false, p_det, tol, G, steps, llr, found, used, slope,
+):  # fmt: skip
+    """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
+    ``used`` and ``slope``."""
+    nw = len(win_start) - 1
+    nslit = planes.shape[0]
+    h, w = distance.shape
+    nb = len(b_start) - 1
+    gvals = _slope_grid(G, steps)
+    ns = len(gvals)
+    maxt = 1
+    for wi in range(nw):
+        maxt = max(maxt, win_start[wi + 1] - win_start[wi])
+    ps = np.empty(maxt)
+    ph = np.empty(maxt)
+    rr = np.empty(maxt)
+    idx = np.empty(maxt, np.int64)
+    mg = np.empty(_MAX_CAND)
+    mt = np.empty(_MAX_CAND)
+    score = np.zeros((2, ns))
+    count = np.zeros((2, ns), np.int64)
+    nuse = np.zeros(2, np.int64)
+    for wi in range(nw):
+        a0 = win_start[wi]
+        nt = win_start[wi + 1] - a0
+        if nt <= 0:
+            continue
+        for k in range(nslit):
+            if not hyp[wi, k] or not np.isfinite(half_band[k]):
+                continue
+            ok, zmean = _curve(C, rays, order, a0, nt, planes[k], O, F, R, t, ps, ph, rr, idx)
+            if not ok or zmean < zmin or zmean > zmax:
+                continue
+            psmin, psmax = ps[idx[0]], ps[idx[nt - 1]]
+            phmin, phmax = ph[0], ph[0]
+            for i in range(nt):
+                phmin = min(phmin, ph[i])
+                phmax = max(phmax, ph[i])
+            hb = half_band[k]
+            b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
+            b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
+            score[:] = 0.0
+            count[:] = 0
+            nuse[:] = 0
+            for b in range(b0, b1 + 1):
+                lo, hi = b_start[b], b_start[b + 1]
+                while lo < hi:  # the bin's first dot with psi >= psmin
+                    mid = (lo + hi) // 2
+                    if dpsi[d_order[mid]] < psmin:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                for q in range(lo, b_start[b + 1]):
+                    j = d_order[q]
+                    psj = dpsi[j]
+                    if psj > psmax:
+                        break
+                    phc, rc = _at(ps, ph, rr, idx, nt, psj)
+                    delta = dphi[j] - phc
+                    if abs(delta) > hb:
+                        continue
+                    side = 1 if delta * phi_sign > 0 else 0
+                    dx, dy, dz = _direction(dphi[j], psj, F)
+                    u0, v0 = _project(
+                        O[0] + rc * dx, O[1] + rc * dy, O[2] + rc * dz, cam, R, t, dist
+                    )
+                    if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
+                        continue
+                    nuse[side] += 1
+                    rm = rc * (1.0 - G * delta)
+                    rp = rc * (1.0 + G * delta)
+                    um, vm = _project(
+                        O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
+                    )
+                    up, vp = _project(
+                        O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist
+                    )
+                    if not (np.isfinite(um) and np.isfinite(up)):
+                        um, vm, up, vp = u0, v0, u0, v0
+                    _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx,
+                                 gny, cell, distance, clearance, p_false, p_det, gvals, mg, mt,
+                                 score[side], count[side])  # fmt: skip
+            for sd in range(2):
+                lm, bi = _log_mean_exp(score[sd])
+                llr[wi, k, sd] = lm
+                found[wi, k, sd] = count[sd, bi]
+                used[wi, k, sd] = nuse[sd]
+                slope[wi, k, sd] = gvals[bi]
+
+
+@njit(cache=True)
+def _slope_grid(G, steps):
+    """(2 steps + 1,) slopes: tan of tilts evenly spaced in [-atan G, atan G] (a uniform prior
+    of the surface's tilt across the stripe)."""
+    bmax = math.atan(G)
+    out = np.empty(2 * steps + 1)
+    for i in range(-steps, steps + 1):
+        out[i + steps] = math.tan(i * bmax / steps)
+    return out
+
+
+@njit(cache=True)
+def _gap_kernel(
+    C, rays, a_order, a_start, b_order, b_start_, planes, O, F, dphi, dpsi, d_order, b_start,
+    phi0, bw, half_band, cam, R, t, dist, zmin, zmax, ou, ov, g_order, g_start, gnx, gny, cell,
+    distance, clearance, p_false, p_det, tol, G, steps, fixed, free_a, free_b, graze,
+):  # fmt: skip
+    """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one)."""
+    ngap = len(a_start) - 1
+    nslit = planes.shape[0]
+    h, w = distance.shape
+    nb = len(b_start) - 1
+    maxt = 1
+    for p in range(ngap):
+        maxt = max(maxt, a_start[p + 1] - a_start[p], b_start_[p + 1] - b_start_[p])
+    psa = np.empty(maxt)
+    pha = np.empty(maxt)
+    rra = np.empty(maxt)
+    ia = np.empty(maxt, np.int64)
+    psb = np.empty(maxt)
+    phb = np.empty(maxt)
+    rrb = np.empty(maxt)
+    ib = np.empty(maxt, np.int64)
+    mg = np.empty(_MAX_CAND)
+    mt = np.empty(_MAX_CAND)
+    gvals = _slope_grid(G, steps)
+    score = np.zeros((2, len(gvals)))
+    count = np.zeros((2, len(gvals)), np.int64)
+    for p in range(ngap):
+        a0, na = a_start[p], a_start[p + 1] - a_start[p]
+        c0, nbp = b_start_[p], b_start_[p + 1] - b_start_[p]
+        if na < 2 or nbp < 2:
+            continue
+        for k in range(nslit - 1):
+            if not (np.isfinite(half_band[k]) and np.isfinite(half_band[k + 1])):
+                continue
+            oka, za = _curve(C, rays, a_order, a0, na, planes[k], O, F, R, t, psa, pha, rra, ia)
+            if not oka or za < zmin or za > zmax:
+                continue
+            okb, zb = _curve(
+                C, rays, b_order, c0, nbp, planes[k + 1], O, F, R, t, psb, phb, rrb, ib
+            )
+            if not okb or zb < zmin or zb > zmax:
+                continue
+            psmin = max(psa[ia[0]], psb[ib[0]])
+            psmax = min(psa[ia[na - 1]], psb[ib[nbp - 1]])
+            if psmax <= psmin:
+                continue
+            phmin, phmax = pha[0], pha[0]
+            for i in range(na):
+                phmin = min(phmin, pha[i])
+                phmax = max(phmax, pha[i])
+            for i in range(nbp):
+                phmin = min(phmin, phb[i])
+                phmax = max(phmax, phb[i])
+            b0 = max(0, int(math.floor((phmin - phi0) / bw)))
+            b1 = min(nb - 1, int(math.floor((phmax - phi0) / bw)))
+            fx = 0.0
+            score[:] = 0.0
+            count[:] = 0
+            for bb in range(b0, b1 + 1):
+                lo, hi = b_start[bb], b_start[bb + 1]
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if dpsi[d_order[mid]] < psmin:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                for q in range(lo, b_start[bb + 1]):
+                    j = d_order[q]
+                    psj = dpsi[j]
+                    if psj > psmax:
+                        break
+                    pa, ra = _at(psa, pha, rra, ia, na, psj)
+                    pb, rb = _at(psb, phb, rrb, ib, nbp, psj)
+                    if abs(pb - pa) < 1e-12:
+                        continue
+                    f = (dphi[j] - pa) / (pb - pa)
+                    if f <= 0.0 or f >= 1.0:
+                        continue
+                    dx, dy, dz = _direction(dphi[j], psj, F)
+                    # the surface between the two stripes: range linear across
+                    r = ra + f * (rb - ra)
+                    u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
+                    ok, a_hit, a_miss = _weights(u0, v0, w, h, distance, clearance, p_false, p_det)
+                    if ok:
+                        hit = False
+                        cx0 = max(0, int((u0 - tol) / cell))
+                        cx1 = min(gnx - 1, int((u0 + tol) / cell))
+                        cy0 = max(0, int((v0 - tol) / cell))
+                        cy1 = min(gny - 1, int((v0 + tol) / cell))
+                        for cy in range(cy0, cy1 + 1):
+                            for cx in range(cx0, cx1 + 1):
+                                cidx = cy * gnx + cx
+                                for e in range(g_start[cidx], g_start[cidx + 1]):
+                                    o = g_order[e]
+                                    if (ou[o] - u0) ** 2 + (ov[o] - v0) ** 2 <= tol * tol:
+                                        hit = True
+                        fx += a_hit if hit else a_miss
+                    # the same dot with a free slope about the nearer stripe
+                    side = 0 if f <= 0.5 else 1
+                    pc, rc = (pa, ra) if side == 0 else (pb, rb)
+                    delta = dphi[j] - pc
+                    u0, v0 = _project(
+                        O[0] + rc * dx, O[1] + rc * dy, O[2] + rc * dz, cam, R, t, dist
+                    )
+                    if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
+                        continue
+                    rm = rc * (1.0 - G * delta)
+                    rp = rc * (1.0 + G * delta)
+                    um, vm = _project(
+                        O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
+                    )
+                    up, vp = _project(
+                        O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist
+                    )
+                    if not (np.isfinite(um) and np.isfinite(up)):
+                        um, vm, up, vp = u0, v0, u0, v0
+                    _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx,
+                                 gny, cell, distance, clearance, p_false, p_det, gvals, mg, mt,
+                                 score[side], count[side])  # fmt: skip
+            fixed[p, k] = fx
+            # how nearly the surface through both stripes grazes the camera's or the dot
+            # source's line of sight, midway
+            psm = 0.5 * (psmin + psmax)
+            pa, ra = _at(psa, pha, rra, ia, na, psm)
+            pb, rb = _at(psb, phb, rrb, ib, nbp, psm)
+            ax_, ay_, az_ = _direction(pa, psm, F)
+            bx_, by_, bz_ = _direction(pb, psm, F)
+            sx = rb * bx_ - ra * ax_
+            sy = rb * by_ - ra * ay_
+            sz = rb * bz_ - ra * az_
+            sn = math.sqrt(sx * sx + sy * sy + sz * sz) + 1e-12
+            mx = O[0] + 0.5 * (ra * ax_ + rb * bx_)
+            my = O[1] + 0.5 * (ra * ay_ + rb * by_)
+            mz = O[2] + 0.5 * (ra * az_ + rb * bz_)
+            cx_, cy_, cz_ = mx - C[0], my - C[1], mz - C[2]
+            cn = math.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_)
+            qx_, qy_, qz_ = mx - O[0], my - O[1], mz - O[2]
+            qn = math.sqrt(qx_ * qx_ + qy_ * qy_ + qz_ * qz_)
+            g1 = abs(sx * cx_ + sy * cy_ + sz * cz_) / (sn * cn)
+            g2 = abs(sx * qx_ + sy * qy_ + sz * qz_) / (sn * qn)
+            graze[p, k] = max(g1, g2)
+            free_a[p, k] = _log_mean_exp(score[0])[0]
+            free_b[p, k] = _log_mean_exp(score[1])[0]
+
+
+def frame_dots(extraction, spacing_px: float) -> FrameDots:
+    """The observed dots of an extraction (:class:`~multislit.stripes.SlitExtraction`): found
+    in its dot image (:func:`~multislit.stripes.dots.find_dots`), speckle on the stripes left
+    out, with the chance of a false match measured over squares of about ``spacing_px``
+    (the slits' spacing, px) around each place."""
+    ex = extraction
+    h, w = ex.dots.shape
+    clearance = STRIPE_CLEARANCE * ex.stripe_width_px
+    dist, peak = stripe_maps(ex.u, ex.v, ex.peak, (h, w), clearance)
+    found = find_dots(ex.dots, ex.noise_sigma, ex.dot_size_px)
+    dots, near = dots_clear_of_stripes(found, dist, peak, clearance, MIN_DOT_RATIO)
+    return FrameDots.make(dots, near, dist, clearance, max(8.0, float(spacing_px)))

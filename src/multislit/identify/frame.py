@@ -1,0 +1,86 @@
+"""Identify the slits of one frame: :func:`identify`, by the dots' geometry or by templates."""
+
+from __future__ import annotations
+
+from numpy.typing import ArrayLike
+
+from multislit.errors import IdentificationError
+from multislit.identify.geometric import identify_geometry
+from multislit.identify.labelling import identify_template
+from multislit.identify.options import IdentifyOptions
+from multislit.identify.reference import ReferenceSet
+from multislit.identify.result import Identification
+from multislit.identify.rig import RigGeometry
+from multislit.stripes import SlitExtraction, as_image, extract_slits
+
+
+def identify(
+    image: ArrayLike,
+    reference: ReferenceSet,
+    rig: RigGeometry | None = None,
+    *,
+    options: IdentifyOptions | None = None,
+    extraction: SlitExtraction | None = None,
+    previous: Identification | None = None,
+) -> Identification:
+    """Find the slits in one image and give each stripe-centre point its slit number.
+
+    Parameters
+    ----------
+    image : (H, W) uint8/uint16, a scan (lasers on); must have the reference's image size
+    reference : the prepared :class:`~multislit.identify.ReferenceSet` (see
+        :func:`~multislit.identify.prepare_reference`), reused for every scan
+    rig : the calibrated rig (:func:`~multislit.identify.rig_geometry`; from a calibration:
+        :func:`multislit.reconstruct.rig_of`), needed by ``method="geometry"``
+    options : :class:`~multislit.identify.IdentifyOptions`; default ``IdentifyOptions()``
+        (by the dots' geometry)
+    extraction : an extraction of ``image`` already made (skips extracting again); default
+        None: extract with the reference's stripe width and dot size
+    previous : the Identification of the previous frame of a sequence (the template method
+        checks its labels instead of searching every slit; see
+        :func:`~multislit.identify.labelling.identify_template`); the geometry method scores
+        every slit of every frame
+
+    Returns
+    -------
+    Identification with per-point u, v, slit (-1 = not identified) and confidence, and for
+    the geometry method per piece where its label came from. An image with no slits gives
+    empty arrays and a message, not an exception.
+
+    Raises
+    ------
+    IdentificationError
+        (a ``ValueError``) if ``image`` is not a grayscale image of the reference's size,
+        ``options`` is not an IdentifyOptions, or the geometry method has no ``rig``.
+    """
+    opts = IdentifyOptions() if options is None else options
+    if not isinstance(opts, IdentifyOptions):
+        raise IdentificationError(
+            f"options must be an IdentifyOptions, got {type(options).__name__}"
+        )
+    if opts.method == "template":
+        return identify_template(
+            image,
+            reference,
+            min_confidence=opts.confidence,
+            extraction=extraction,
+            previous=previous,
+        )
+    if not isinstance(rig, RigGeometry):
+        raise IdentificationError(
+            "identification by the dots' geometry needs the calibrated rig (rig=rig_geometry(...), "
+            "or scan with a calibration that has a dot projector); for the paper's template "
+            "matching pass options=IdentifyOptions(method='template')"
+        )
+    img = as_image(image)
+    w, h = reference.image_size
+    if img.shape != (h, w):
+        raise IdentificationError(
+            f"image is {img.shape[1]}x{img.shape[0]} px but the reference was prepared for {w}x{h} px"
+        )
+    ex = extraction or extract_slits(
+        img, stripe_width_px=reference.stripe_width_px, dot_size_px=reference.dot_size_px
+    )
+    if opts.depth_range is not None:
+        rig = rig.with_depth_range(opts.depth_range)
+    return identify_geometry(ex, reference, rig, opts)

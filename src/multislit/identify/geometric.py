@@ -1,0 +1,268 @@
+"""Identification by the dots' geometry: the chain of stages from an image to its labels.
+
+1. the stripes and the dot image (:func:`~multislit.stripes.extract_slits`), and the dots
+   found in it (:func:`~multislit.identify.evidence.frame_dots`);
+2. the linked stripe points in windows of consecutive rows
+   (:func:`~multislit.identify.pieces.windows`), and for every window, slit and side of the
+   stripe, how well the slit explains the dots beside it
+   (:func:`~multislit.identify.evidence.dot_evidence`);
+3. the gaps between windows side by side in the rows (:func:`~multislit.identify.pieces.gaps`)
+   and what the dots between them say (:func:`~multislit.identify.evidence.gap_evidence`); the
+   windows that continue one another: the next window of a segment, and a segment that
+   continues another below it (:func:`~multislit.identify.pieces.continuations`);
+4. one labelling of all the windows (:func:`~multislit.identify.graph.label_pieces`): a
+   window below the required confidence is left out. Where a segment's slit changes (the
+   linking joined two slits' stripes where they meet), its windows take different labels:
+   each change costs the chain's bonus, so the dots decide where;
+5. the pieces: each segment cut where its windows' labels change.
+
+Each stage returns a new value; the result says per piece where its label came from
+(:class:`~multislit.identify.result.PieceLabels`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from multislit.identify.evidence import dot_evidence, frame_dots, gap_evidence
+from multislit.identify.graph import confidence_margin, label_pieces
+from multislit.identify.options import IdentifyOptions
+from multislit.identify.pieces import Windows, continuations, gaps, split_at_kinks, windows
+from multislit.identify.reference import ReferenceSet
+from multislit.identify.result import SOURCES, Identification, PieceLabels
+from multislit.identify.rig import RigGeometry
+from multislit.identify.segments import split_at_brightness_steps
+from multislit.stripes import SlitExtraction
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Stripe points per window (rows): the dots' evidence is scored per window, the surface's
+#: slope across the stripe free in each.
+_WINDOW_ROWS = 24
+#: Log-likelihood a window gains when it carries the slit of the window before it in its
+#: segment, and loses when it carries another (where the segment crosses an object's edge).
+_CHAIN = 4.0
+_CHAIN_CHANGE = 1.5
+#: A segment is cut where lines fitted to this many points before and after a point put the
+#: stripe more than this many px apart (a step where two slits' stripes meet).
+_KINK_ROWS = 6
+_KINK_PX = 0.5
+#: Pieces farther apart in a row than this many slit spacings are not neighbours there ...
+_GAP_SPACINGS = 3.0
+#: ... and pieces side by side in fewer rows than this are not neighbours at all.
+_GAP_ROWS = 3
+#: Log-likelihood a gap gains when its pieces are neighbouring slits of one surface ...
+_COUPLING = 6.0
+#: ... unless that surface meets a line of sight at less than acos(this) (a step in depth).
+_GRAZE = 0.97
+#: Log-likelihood a gap loses when both its pieces carry one slit ...
+_REPEAT_PENALTY = 30.0
+#: ... and when they carry slits that are not neighbours of one surface (a step in depth).
+_SPLIT = 1.5
+#: A window is labelled only when the dots' evidence of the group of windows its label ties it
+#: to (neighbouring slits of one surface, continuations of one slit) reaches this (nats).
+_MIN_SUPPORT = 8.0
+#: The windows' slits of the lowest evidence (from the rank on) measure the frame's evidence
+#: under wrong slits, which is taken out of every window's so that chance does not add up.
+_NULL_RANK = 4
+#: A piece that continues another below it (within these rows and px) gains this for one slit.
+_CONTINUATION = 1.0
+_CONTINUATION_ROWS = 12
+_CONTINUATION_PX = 4.0
+#: ... and as bright, within this ratio.
+_STEP_RATIO = 1.6
+
+
+def _empty(ex: SlitExtraction, message: str) -> Identification:
+    k = len(ex.u)
+    return Identification(
+        ex.u,
+        ex.v,
+        np.full(k, -1, np.int64),
+        np.zeros(k),
+        np.full(k, -1, np.int64),
+        ex.peak,
+        ex.width,
+        0,
+        0,
+        {},
+        message,
+        ex,
+        None,
+        "geometry",
+    )
+
+
+def identify_geometry(
+    ex: SlitExtraction, reference: ReferenceSet, rig: RigGeometry, options: IdentifyOptions
+) -> Identification:
+    """Label the stripe points of an extraction by the dots' geometry (see the module).
+
+    Parameters
+    ----------
+    ex : the image's extraction
+    reference : the rig's prepared reference (its slit spacing)
+    rig : the calibrated rig (:func:`~multislit.identify.rig.rig_geometry`)
+    options : the identification's options (``min_confidence``)
+
+    Returns
+    -------
+    Identification with ``pieces`` and ``method="geometry"``
+    """
+    k = len(ex.u)
+    if k == 0 or not np.any(ex.segment >= 0):
+        return _empty(ex, "no slits found in the image")
+    frame = frame_dots(ex, reference.spacing_px)
+    uv = np.stack([ex.u, ex.v], axis=1)
+    _, rays = rig.camera.rays(uv)
+    # where a stripe runs into another surface's stripe the linking may join them; the
+    # brightness steps there (another albedo or depth)
+    segment = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
+    segment = split_at_kinks(segment, ex.u, ex.v, _KINK_ROWS, _KINK_PX)
+    win = windows(segment, ex.v, _WINDOW_ROWS)
+    ev = dot_evidence(rig, rays, win.order, win.start, frame)
+    scores = _calibrated(ev.llr.sum(axis=2).astype(np.float64))
+    nw = win.num_windows
+    window = Windows(win.order, win.start, win.segment, np.arange(nw)).piece_of_points(k)
+    gp = gaps(ex.u, ex.v, window, _GAP_SPACINGS * reference.spacing_px, _GAP_ROWS)
+    ge = gap_evidence(rig, rays, gp.a_order, gp.a_start, gp.b_order, gp.b_start, frame)
+    ca, cb, bonus, change = _continuations(ex, segment, win)
+    lab = label_pieces(
+        scores,
+        gp.a,
+        gp.b,
+        ge.bonus.astype(np.float64),
+        ge.graze < _GRAZE,
+        gp.rows,
+        ca,
+        cb,
+        bonus,
+        change,
+        coupling=_COUPLING,
+        repeat_penalty=_REPEAT_PENALTY,
+        split_penalty=_SPLIT,
+    )
+    accepted = (
+        (lab.slit >= 0) & (lab.confidence >= options.confidence) & (lab.support >= _MIN_SUPPORT)
+    )
+    label = np.where(accepted, lab.slit, -1)
+    # the pieces: runs of windows of one segment with one label
+    new = np.r_[True, (win.segment[1:] != win.segment[:-1]) | (label[1:] != label[:-1])]
+    piece_of_window = np.cumsum(new) - 1
+    piece = np.full(k, -1, np.int64)
+    piece[window >= 0] = piece_of_window[window[window >= 0]]
+    pieces, dropped = _piece_labels(
+        scores, piece_of_window, label, lab.confidence, options.confidence
+    )
+    slit = np.full(k, -1, np.int64)
+    conf = np.zeros(k)
+    has = window >= 0
+    slit[has] = label[window[has]]
+    conf[has] = np.where(slit[has] >= 0, lab.confidence[window[has]], 0.0)
+    return Identification(
+        ex.u,
+        ex.v,
+        slit,
+        conf,
+        piece,
+        ex.peak,
+        ex.width,
+        len(pieces.slit),
+        int(np.count_nonzero(pieces.slit >= 0)),
+        dropped,
+        "",
+        ex,
+        pieces,
+        "geometry",
+    )
+
+
+def _calibrated(scores: F64) -> F64:
+    """The windows' log-likelihood ratios (W, N) less the frame's bias under wrong slits: the
+    log of the mean of exp(ratio) over each window's slits from the :data:`_NULL_RANK`-th best
+    on (a calibrated ratio averages 1 there; chance finds of dots make it more)."""
+    x = np.where(np.isfinite(scores), scores, -np.inf)
+    if x.shape[1] <= _NULL_RANK:
+        return scores
+    rest = -np.sort(-x, axis=1)[:, _NULL_RANK:]
+    rest = rest[np.isfinite(rest)]
+    if rest.size == 0:
+        return scores
+    top = rest.max()
+    bias = top + math.log(np.mean(np.exp(rest - top)))
+    return scores - max(bias, 0.0)
+
+
+def _continuations(ex: SlitExtraction, segment: I64, win: Windows) -> tuple[I64, I64, F64, F64]:
+    """The windows that continue one another, and the bonus of one slit for each: the next
+    window of a segment (:data:`_CHAIN`), and the first window of a segment that continues
+    another below it, as bright (:data:`_CONTINUATION`)."""
+    nw = win.num_windows
+    same = np.flatnonzero(win.segment[1:] == win.segment[:-1])
+    sa, sb = continuations(ex.u, ex.v, segment, _CONTINUATION_ROWS, _CONTINUATION_PX)
+    if len(sa):
+        # the median brightness of the windows that meet: a step is another surface
+        wpeak = np.array(
+            [
+                np.median(ex.peak[win.order[a:b]])
+                for a, b in zip(win.start[:-1], win.start[1:], strict=True)
+            ]
+        )
+        nseg0 = int(win.segment.max()) + 1
+        f0 = np.full(nseg0, -1, np.int64)
+        l0 = np.full(nseg0, -1, np.int64)
+        f0[win.segment[::-1]] = np.arange(nw)[::-1]
+        l0[win.segment] = np.arange(nw)
+        ratio = wpeak[l0[sa]] / np.maximum(wpeak[f0[sb]], 1e-6)
+        keep = (ratio < _STEP_RATIO) & (ratio > 1.0 / _STEP_RATIO)
+        sa, sb = sa[keep], sb[keep]
+    nseg = int(win.segment.max()) + 1 if nw else 0
+    first = np.full(nseg, -1, np.int64)
+    last = np.full(nseg, -1, np.int64)
+    first[win.segment[::-1]] = np.arange(nw)[::-1]
+    last[win.segment] = np.arange(nw)
+    a = np.r_[same, last[sa]].astype(np.int64)
+    b = np.r_[same + 1, first[sb]].astype(np.int64)
+    bonus = np.r_[np.full(len(same), _CHAIN), np.full(len(sa), _CONTINUATION)]
+    change = np.r_[np.full(len(same), _CHAIN_CHANGE), np.zeros(len(sa))]
+    return a, b, bonus, change
+
+
+def _piece_labels(
+    scores: F64, piece_of_window: I64, label: I64, confidence: F64, min_confidence: float
+) -> tuple[PieceLabels, dict[str, int]]:
+    """Per piece (a run of windows with one label): its label and confidence (the least of
+    its windows'), its own dots' preference and where its label came from; and the counts of
+    the pieces left out by reason."""
+    s = int(piece_of_window.max()) + 1
+    n = scores.shape[1]
+    own_scores = np.zeros((s, n))
+    np.add.at(own_scores, piece_of_window, np.where(np.isfinite(scores), scores, 0.0))
+    ruled = np.zeros((s, n), bool)
+    np.logical_or.at(ruled, piece_of_window, ~np.isfinite(scores))
+    u = np.where(ruled, -np.inf, own_scores)
+    valid = np.isfinite(u).any(axis=1)
+    order = np.argsort(-u, axis=1)
+    own = np.where(valid, order[:, 0], -1)
+    best = u[np.arange(s), order[:, 0]]
+    second = u[np.arange(s), order[:, 1]] if n > 1 else np.full(s, -np.inf)
+    own_margin = np.where(valid, np.minimum(best - np.maximum(second, 0.0), best), 0.0)
+    slit = np.full(s, -1, np.int64)
+    slit[piece_of_window] = label
+    conf = np.ones(s)
+    np.minimum.at(conf, piece_of_window, confidence)
+    accepted = slit >= 0
+    need = confidence_margin(min_confidence) if min_confidence > 0 else -math.inf
+    by_dots = accepted & (own == slit) & (own_margin >= need)
+    source = np.zeros(s, np.int8)
+    source[accepted] = SOURCES.index("its neighbours")
+    source[by_dots] = SOURCES.index("its dots")
+    dropped = {
+        "out_of_volume": int(np.count_nonzero(~valid)),
+        "low_confidence": int(np.count_nonzero(valid & ~accepted)),
+    }
+    return PieceLabels(slit, conf, own.astype(np.int64), own_margin, source), dropped

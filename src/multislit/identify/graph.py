@@ -1,0 +1,265 @@
+"""One labelling of all the pieces of a frame: their own dots and what their neighbours say.
+
+Every piece gets a slit or the null label ("none": not identified). The labelling maximises
+
+- each piece's own evidence: the log-likelihood ratio of its dots per slit
+  (:mod:`~multislit.identify.evidence`; 0 for the null label, a slit that puts the piece
+  outside the measuring volume is ruled out);
+- per gap (two pieces side by side in the rows, :func:`~multislit.identify.pieces.gaps`): when
+  the right piece is the next slit of the left one and the surface through both stripes does
+  not graze the camera's or the dot source's line of sight, a coupling (``coupling``, scaled
+  by the rows they share) plus what the dots between them say for one surface against each
+  piece alone (:attr:`~multislit.identify.evidence.GapEvidence.bonus`); when both carry one
+  slit, a penalty (a slit lights a row once);
+- per continuation (a piece that continues another: the next window of a segment, or a
+  segment that continues another below it): a bonus for one slit.
+
+The labelling is found by loopy belief propagation (max-product, damped), which gives every
+piece its belief per label; the confidence of a piece's label is its belief's share
+(softmax) against every other label, null included. A piece whose best label has less than
+the required confidence is left out, never guessed.
+
+Units: log-likelihood (nats).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Rows two pieces must share for their coupling to count in full.
+_COUPLING_ROWS = 40.0
+#: Belief propagation: sweeps and damping (share of the old message kept).
+_SWEEPS = 30
+_DAMPING = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Labelling:
+    """The frame's labelling.
+
+    Attributes
+    ----------
+    slit : (S,) int64, each piece's best slit (-1: every slit ruled out)
+    confidence : (S,) float64, 0..1, the best slit's share of the belief against every other
+    belief : (S, N) float64, max-product beliefs
+    support : (S,) float64, nats, the dots' evidence for the labelling of the group of pieces
+        it ties the piece to (by the gaps of neighbouring slits and the continuations of one
+        slit): the sum of their own log-likelihood ratios for their labels
+    """
+
+    slit: I64
+    confidence: F64
+    belief: F64
+    support: F64
+
+
+@njit(cache=True)
+def _top3(h):
+    """Indices of the three largest values of ``h`` (fewer when shorter: -1)."""
+    i1 = i2 = i3 = -1
+    for k in range(len(h)):
+        x = h[k]
+        if i1 < 0 or x > h[i1]:
+            i3, i2, i1 = i2, i1, k
+        elif i2 < 0 or x > h[i2]:
+            i3, i2 = i2, k
+        elif i3 < 0 or x > h[i3]:
+            i3 = k
+    return i1, i2, i3
+
+
+@njit(cache=True, inline="always")
+def _max_except(h, t1, t2, t3, x, y):
+    """The largest value of ``h`` at an index other than ``x`` and ``y`` (its three largest
+    at ``t1``, ``t2``, ``t3``)."""
+    for t in (t1, t2, t3):
+        if t >= 0 and t != x and t != y:
+            return h[t]
+    return -np.inf
+
+
+@njit(cache=True)
+def _gap_message(h, theta, penalty, split, forward, out):
+    """The message across a gap: from the left piece (``forward``) or from the right one.
+    ``theta`` (N,): the coupling when the right piece is slit k + 1 of the left one's k (NaN:
+    no coupling: a step in depth); ``penalty``: the cost of both carrying one slit; ``split``:
+    the cost of two slits that are not neighbours of one surface."""
+    n = len(h)
+    t1, t2, t3 = _top3(h)
+    for k in range(n):
+        if forward:  # to the right piece's k from the left piece's k - 1
+            c = k - 1
+            best = _max_except(h, t1, t2, t3, k, c if c >= 0 else -2) - split
+            if c >= 0:
+                best = max(best, h[c] + (theta[c] if np.isfinite(theta[c]) else -split))
+        else:  # to the left piece's k from the right piece's k + 1
+            c = k + 1
+            best = _max_except(h, t1, t2, t3, k, c if c < n else -2) - split
+            if c < n:
+                best = max(best, h[c] + (theta[k] if np.isfinite(theta[k]) else -split))
+        out[k] = max(best, h[k] - penalty)
+
+
+@njit(cache=True)
+def _continuation_message(h, bonus, change, out):
+    """The message along a continuation: one slit gains ``bonus``, two slits lose ``change``."""
+    t1, t2, t3 = _top3(h)
+    for k in range(len(h)):
+        out[k] = max(_max_except(h, t1, t2, t3, k, -2) - change, h[k] + bonus)
+
+
+@njit(cache=True)
+def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, sweeps, damping):
+    """Loopy max-product belief propagation; the beliefs (S, L)."""
+    s, nl = unary.shape
+    ng = len(ga)
+    nc = len(ca)
+    ne = ng + nc
+    # messages: edge e forward (to its second piece) and backward (to its first)
+    fwd = np.zeros((ne, nl))
+    bwd = np.zeros((ne, nl))
+    belief = unary.copy()
+    tmp = np.empty(nl)
+    for _ in range(sweeps):
+        belief[:, :] = unary
+        for e in range(ne):
+            a = ga[e] if e < ng else ca[e - ng]
+            b = gb[e] if e < ng else cb[e - ng]
+            for k in range(nl):
+                belief[b, k] += fwd[e, k]
+                belief[a, k] += bwd[e, k]
+        for e in range(ne):
+            a = ga[e] if e < ng else ca[e - ng]
+            b = gb[e] if e < ng else cb[e - ng]
+            # forward: from a (without what b told it)
+            h = belief[a] - bwd[e]
+            if e < ng:
+                _gap_message(h, theta[e], penalty[e], split[e], True, tmp)
+            else:
+                _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
+            m = tmp.max()
+            for k in range(nl):
+                fwd[e, k] = damping * fwd[e, k] + (1.0 - damping) * (tmp[k] - m)
+            h = belief[b] - fwd[e]
+            if e < ng:
+                _gap_message(h, theta[e], penalty[e], split[e], False, tmp)
+            else:
+                _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
+            m = tmp.max()
+            for k in range(nl):
+                bwd[e, k] = damping * bwd[e, k] + (1.0 - damping) * (tmp[k] - m)
+    belief[:, :] = unary
+    for e in range(ne):
+        a = ga[e] if e < ng else ca[e - ng]
+        b = gb[e] if e < ng else cb[e - ng]
+        for k in range(nl):
+            belief[b, k] += fwd[e, k]
+            belief[a, k] += bwd[e, k]
+    return belief
+
+
+def label_pieces(
+    unary: F64,
+    gap_a: I64,
+    gap_b: I64,
+    gap_bonus: F64,
+    gap_continuous: NDArray[np.bool_],
+    gap_rows: I64,
+    cont_a: I64,
+    cont_b: I64,
+    cont_bonus: F64,
+    cont_change: F64,
+    *,
+    coupling: float,
+    repeat_penalty: float,
+    split_penalty: float,
+) -> Labelling:
+    """The labelling of the frame's pieces (see the module's docstring).
+
+    Parameters
+    ----------
+    unary : (S, N) float64, each piece's log-likelihood ratio per slit (NaN: ruled out)
+    gap_a, gap_b : (G,) int64, the left and right piece of each gap
+    gap_bonus : (G, N) float64, what the dots between them say for (k, k + 1) on one surface
+        against each piece alone (NaN: not a hypothesis)
+    gap_continuous : (G, N) bool, the surface through both stripes under (k, k + 1) does not
+        graze a line of sight
+    gap_rows : (G,) int64, the rows each gap's pieces share
+    cont_a, cont_b : (C,) int64, continuations: piece b continues piece a
+    cont_bonus : (C,) float64, log-likelihood a continuation gains when both carry one slit
+    cont_change : (C,) float64, log-likelihood it loses when they carry two slits
+    coupling : log-likelihood gained by a gap whose pieces are neighbouring slits of one
+        surface (for the full :data:`_COUPLING_ROWS` shared rows; less for fewer)
+    repeat_penalty : log-likelihood lost by a gap whose pieces carry one slit
+    split_penalty : log-likelihood lost by a gap whose pieces carry two slits that are not
+        neighbours of one surface (a step in depth)
+
+    Returns
+    -------
+    Labelling; ``support`` says which pieces the dots support
+    """
+    s, n = unary.shape
+    u = np.where(np.isfinite(unary), unary, -1e9)
+    w = np.minimum(1.0, np.asarray(gap_rows, np.float64) / _COUPLING_ROWS)
+    cont = gap_continuous & np.isfinite(gap_bonus)
+    theta = np.where(cont, coupling * w[:, None] + gap_bonus, np.nan)
+    belief = _propagate(
+        np.ascontiguousarray(u, np.float64),
+        np.asarray(gap_a, np.int64),
+        np.asarray(gap_b, np.int64),
+        np.ascontiguousarray(theta, np.float64),
+        repeat_penalty * w,
+        split_penalty * w,
+        np.asarray(cont_a, np.int64),
+        np.asarray(cont_b, np.int64),
+        np.asarray(cont_bonus, np.float64),
+        np.asarray(cont_change, np.float64),
+        _SWEEPS,
+        _DAMPING,
+    )
+    best = np.argmax(belief, axis=1)
+    top = belief[np.arange(s), best]
+    with np.errstate(over="ignore"):
+        conf = 1.0 / np.exp(belief - top[:, None]).sum(axis=1)
+    # the groups of pieces the labelling ties together, and the dots' evidence of each
+    ga, gb = np.asarray(gap_a, np.int64), np.asarray(gap_b, np.int64)
+    tied_gap = (best[gb] == best[ga] + 1) & cont[np.arange(len(ga)), np.minimum(best[ga], n - 1)]
+    ca, cb = np.asarray(cont_a, np.int64), np.asarray(cont_b, np.int64)
+    tied_cont = best[ca] == best[cb]
+    group = _groups(s, np.r_[ga[tied_gap], ca[tied_cont]], np.r_[gb[tied_gap], cb[tied_cont]])
+    own = u[np.arange(s), best]
+    support = np.bincount(group, weights=own, minlength=s)[group]
+    ruled_out = ~np.isfinite(unary[np.arange(s), best])
+    slit = np.where(ruled_out, -1, best)
+    return Labelling(slit.astype(np.int64), conf, belief, support)
+
+
+def _groups(n: int, a: I64, b: I64) -> I64:
+    """(n,) int64: the connected component of each of n nodes joined by the edges (a, b)."""
+    parent = np.arange(n)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for x, y in zip(a.tolist(), b.tolist(), strict=True):
+        rx, ry = find(x), find(y)
+        if rx != ry:
+            parent[ry] = rx
+    return np.array([find(i) for i in range(n)], np.int64)
+
+
+def confidence_margin(confidence: float) -> float:
+    """The margin (nats) over all other labels that a confidence (0..1) takes."""
+    c = min(max(float(confidence), 1e-12), 1.0 - 1e-12)
+    return math.log(c / (1.0 - c))

@@ -1,0 +1,308 @@
+"""Stripe pieces: the extraction's segments in windows, cut where the dots change their slit.
+
+A segment of the extraction (:func:`~multislit.stripes.link_segments`) is one run of stripe
+centres, but the linking may join two slits' stripes where they meet (at an object's edge a
+stripe on the object continues a stripe on the wall). Identification works on **windows** of a
+segment's points (:func:`windows`), scores every slit for each window
+(:mod:`~multislit.identify.evidence`), and cuts a segment into **pieces** where the windows'
+best slit changes for good (:func:`split_pieces`: the best sequence of slits along the
+segment, each change costing a penalty). Two pieces side by side in the rows form a **gap**
+(:func:`gaps`), whose dots say whether they are neighbouring slits of one surface.
+
+Units: px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+I64 = NDArray[np.int64]
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Windows:
+    """The linked stripe points in windows of consecutive rows, segment by segment.
+
+    Attributes
+    ----------
+    order : (P,) int64, point indices (into the extraction), by segment, then row
+    start : (W+1,) int64, window w holds ``order[start[w]:start[w+1]]``
+    segment : (W,) int64, the segment of each window
+    piece : (W,) int64, the piece of each window (pieces are numbered from 0; before
+        :func:`split_pieces`, one per segment)
+    """
+
+    order: I64
+    start: I64
+    segment: I64
+    piece: I64
+
+    @property
+    def num_windows(self) -> int:
+        return len(self.segment)
+
+    @property
+    def num_pieces(self) -> int:
+        return int(self.piece.max()) + 1 if len(self.piece) else 0
+
+    def piece_of_points(self, num_points: int) -> I64:
+        """(K,) int64: the piece of every point (-1: in no window)."""
+        out = np.full(num_points, -1, np.int64)
+        counts = np.diff(self.start)
+        out[self.order] = np.repeat(self.piece, counts)
+        return out
+
+
+def windows(segment: I64, v: F64, rows: int) -> Windows:
+    """The linked points (``segment >= 0``) in windows of about ``rows`` points each: a
+    segment of n points gets ``max(1, round(n / rows))`` windows of nearly equal size.
+
+    Parameters
+    ----------
+    segment : (K,) int64, segment id per point (-1: unlinked)
+    v : (K,) float64, px, the points' rows
+    rows : int, the windows' target length (points)
+    """
+    lk = np.flatnonzero(segment >= 0)
+    lk = lk[np.lexsort((v[lk], segment[lk]))]
+    seg = segment[lk]
+    if lk.size == 0:
+        e = np.zeros(0, np.int64)
+        return Windows(e, np.zeros(1, np.int64), e.copy(), e.copy())
+    bounds = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1], True])
+    n = np.diff(bounds)
+    nwin = np.maximum(1, np.rint(n / max(1, rows)).astype(np.int64))
+    # window j of a segment of n points with m windows ends at round(n (j + 1) / m)
+    seg_of_win = np.repeat(np.arange(len(n)), nwin)
+    j = np.arange(int(nwin.sum())) - np.repeat(np.cumsum(nwin) - nwin, nwin)
+    ends = bounds[seg_of_win] + np.rint(n[seg_of_win] * (j + 1) / nwin[seg_of_win]).astype(np.int64)
+    start = np.r_[0, ends].astype(np.int64)
+    return Windows(lk.astype(np.int64), start, seg[bounds[:-1]][seg_of_win], seg_of_win)
+
+
+@njit(cache=True)
+def _viterbi(scores, first, penalty, out):
+    """Best slit per window along each run ``first[i]:first[i+1]`` of ``scores`` (W, N), each
+    change of slit costing ``penalty``; the slits into ``out`` (W,)."""
+    n_runs = len(first) - 1
+    nslit = scores.shape[1]
+    for r in range(n_runs):
+        a, b = first[r], first[r + 1]
+        back = np.empty((b - a, nslit), np.int64)
+        cur = scores[a].copy()
+        for i in range(a + 1, b):
+            best = 0
+            for k in range(1, nslit):
+                if cur[k] > cur[best]:
+                    best = k
+            switch = cur[best] - penalty
+            nxt = np.empty(nslit)
+            for k in range(nslit):
+                if cur[k] >= switch:
+                    nxt[k] = cur[k] + scores[i, k]
+                    back[i - a, k] = k
+                else:
+                    nxt[k] = switch + scores[i, k]
+                    back[i - a, k] = best
+            cur = nxt
+        k = 0
+        for q in range(1, nslit):
+            if cur[q] > cur[k]:
+                k = q
+        out[b - 1] = k
+        for i in range(b - 1, a, -1):
+            k = back[i - a, k]
+            out[i - 1] = k
+
+
+def split_pieces(win: Windows, scores: F64, penalty: float) -> Windows:
+    """Cut each segment where its windows' best slit changes for good.
+
+    The slits along a segment are the sequence that maximises the sum of the windows' scores
+    less ``penalty`` for each change (Viterbi); each run of one slit becomes a piece.
+
+    Parameters
+    ----------
+    win : the windows
+    scores : (W, N) float64, each window's log-likelihood ratio per slit (NaN: ruled out)
+    penalty : the cost of a change of slit (log-likelihood)
+
+    Returns
+    -------
+    Windows with the new pieces, numbered in window order
+    """
+    nw = win.num_windows
+    if nw == 0:
+        return win
+    s = np.where(np.isfinite(scores), scores, -1e6).astype(np.float64)
+    first = np.flatnonzero(np.r_[True, win.segment[1:] != win.segment[:-1], True])
+    best = np.zeros(nw, np.int64)
+    _viterbi(s, first.astype(np.int64), float(penalty), best)
+    new = np.r_[True, (win.segment[1:] != win.segment[:-1]) | (best[1:] != best[:-1])]
+    return Windows(win.order, win.start, win.segment, np.cumsum(new) - 1)
+
+
+@dataclass(frozen=True, eq=False)
+class Gaps:
+    """Pairs of pieces side by side in the rows: a on the left, b next to it on the right
+    (no stripe centre between them), in the rows they share.
+
+    Attributes
+    ----------
+    a, b : (G,) int64, the pieces
+    a_order, a_start : gap g's left piece has the points ``a_order[a_start[g]:a_start[g+1]]``
+        (in the shared rows, by row)
+    b_order, b_start : the same for the right piece
+    """
+
+    a: I64
+    b: I64
+    a_order: I64
+    a_start: I64
+    b_order: I64
+    b_start: I64
+
+    @property
+    def num_gaps(self) -> int:
+        return len(self.a)
+
+    @property
+    def rows(self) -> I64:
+        """(G,) int64: the rows each gap's pieces share."""
+        return np.diff(self.a_start)
+
+
+def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
+    """The gaps between pieces side by side in the rows.
+
+    Parameters
+    ----------
+    u, v : (K,) float64, px, the points
+    piece : (K,) int64, the piece of each point (-1: none)
+    max_gap_px : px, pieces farther apart in a row are not neighbours there
+    min_rows : a pair sharing fewer rows is not a gap
+    """
+    lk = np.flatnonzero(piece >= 0)
+    r = np.rint(v[lk]).astype(np.int64)
+    o = np.lexsort((u[lk], r))
+    lk, r = lk[o], r[o]
+    same = r[1:] == r[:-1]
+    a, b = lk[:-1][same], lk[1:][same]
+    keep = (piece[a] != piece[b]) & (u[b] - u[a] < max_gap_px)
+    a, b = a[keep], b[keep]
+    key = piece[a] * (int(piece.max()) + 1) + piece[b]
+    o = np.lexsort((v[a], key))
+    a, b, key = a[o], b[o], key[o]
+    bounds = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    n = np.diff(bounds)
+    ok = n >= min_rows
+    sel = np.repeat(ok, n)
+    start = np.r_[0, np.cumsum(n[ok])].astype(np.int64)
+    return Gaps(
+        piece[a[bounds[:-1][ok]]],
+        piece[b[bounds[:-1][ok]]],
+        a[sel].astype(np.int64),
+        start,
+        b[sel].astype(np.int64),
+        start.copy(),
+    )
+
+
+def continuations(u: F64, v: F64, piece: I64, max_rows: int, max_du: float) -> tuple[I64, I64]:
+    """Pairs of pieces where one stripe continues another below it: piece b's first point lies
+    at most ``max_rows`` rows below piece a's last and within ``max_du`` px (plus half a px a
+    row) of its column. Returns (a, b), each (C,) int64."""
+    lk = np.flatnonzero(piece >= 0)
+    if lk.size == 0:
+        e = np.zeros(0, np.int64)
+        return e, e.copy()
+    o = np.lexsort((v[lk], piece[lk]))
+    lk = lk[o]
+    p = piece[lk]
+    bounds = np.flatnonzero(np.r_[True, p[1:] != p[:-1], True])
+    first, last = lk[bounds[:-1]], lk[bounds[1:] - 1]
+    ids = p[bounds[:-1]]
+    # candidates: every first point within max_rows below each last point
+    fo = np.argsort(v[first], kind="stable")
+    fv = v[first][fo]
+    out_a, out_b = [], []
+    for i, e in enumerate(last):
+        lo = np.searchsorted(fv, v[e], side="right")
+        hi = np.searchsorted(fv, v[e] + max_rows, side="right")
+        c = fo[lo:hi]
+        dv = v[first[c]] - v[e]
+        ok = (np.abs(u[first[c]] - u[e]) <= max_du + 0.5 * dv) & (ids[c] != ids[i])
+        out_a.extend([ids[i]] * int(ok.sum()))
+        out_b.extend(ids[c[ok]].tolist())
+    return np.array(out_a, np.int64), np.array(out_b, np.int64)
+
+
+@njit(cache=True)
+def _kink_steps(u, v, start, window, out):
+    """Per point of runs ``start[i]:start[i+1]`` of (u, v) (by v): how far apart, at the
+    point, the lines fitted to the ``window`` points before it and from it on put the stripe
+    (px); 0 where a side has fewer points."""
+    for r in range(len(start) - 1):
+        a, b = start[r], start[r + 1]
+        for i in range(a + window, b - window + 1):
+            # least-squares lines u = p + q (v - v_i) on each side
+            x0 = v[i]
+            s0 = s1 = s2 = t0 = t1 = 0.0
+            for j in range(i - window, i):
+                d = v[j] - x0
+                s0 += 1.0
+                s1 += d
+                s2 += d * d
+                t0 += u[j]
+                t1 += u[j] * d
+            den = s0 * s2 - s1 * s1
+            pb = (t0 * s2 - t1 * s1) / den if den > 1e-9 else t0 / s0
+            s0 = s1 = s2 = t0 = t1 = 0.0
+            for j in range(i, i + window):
+                d = v[j] - x0
+                s0 += 1.0
+                s1 += d
+                s2 += d * d
+                t0 += u[j]
+                t1 += u[j] * d
+            den = s0 * s2 - s1 * s1
+            pa = (t0 * s2 - t1 * s1) / den if den > 1e-9 else t0 / s0
+            out[i] = abs(pa - pb)
+
+
+def split_at_kinks(segment: I64, u: F64, v: F64, window: int, max_step_px: float) -> I64:
+    """Cut segments where the stripe steps sideways: the lines fitted to the ``window`` points
+    before a point and from it on put the stripe more than ``max_step_px`` apart there (where a
+    stripe runs into another slit's stripe, the linking may have joined them across a small
+    step). Each cut is at the largest step, ``window`` points clear of the next.
+
+    Returns
+    -------
+    (K,) int64, new segment ids (new pieces get ids after the largest one)
+    """
+    seg = segment.copy()
+    lk = np.flatnonzero(seg >= 0)
+    if lk.size < 2 * window + 1:
+        return seg
+    lk = lk[np.lexsort((v[lk], seg[lk]))]
+    s = seg[lk]
+    start = np.flatnonzero(np.r_[True, s[1:] != s[:-1], True]).astype(np.int64)
+    step = np.zeros(len(lk))
+    _kink_steps(u[lk].astype(np.float64), v[lk].astype(np.float64), start, int(window), step)
+    nxt = int(seg.max()) + 1
+    for a, b in zip(start[:-1], start[1:], strict=True):
+        st = step[a:b].copy()
+        cuts = []
+        while st.size and st.max() > max_step_px:
+            j = int(np.argmax(st))
+            cuts.append(j)
+            st[max(0, j - window) : j + window] = 0.0
+        for c in sorted(cuts):
+            seg[lk[a + c : b][seg[lk[a + c : b]] == s[a]]] = nxt
+            nxt += 1
+    return seg
