@@ -60,12 +60,21 @@ MATCH_TOL_PX = 1.5
 #: stripes and near one (where a dot must outshine the speckle on the stripe).
 P_DETECT = (0.8, 0.55)
 #: Tilts of the surface across the stripe tried on either side of 0 (up to atan(SLOPE_MAX)).
-_SLOPE_STEPS = 35
+_SLOPE_STEPS = 8
 #: The frame's density of dots weighs in the local one as much as this many px of the place's
 #: own neighbourhood (a place with few pixels of a zone around it takes the frame's density) ...
 _PRIOR_AREA = 400.0
 #: ... and a chance match is never taken as less likely than this.
 _MIN_P_FALSE = 0.01
+#: Per window, the slits scored with the slope marginalised: those within this (nats) of the
+#: best at the slope 0 (the others are far from explaining the dots).
+_KEEP = 15.0
+#: A piece's 3D curve is worked out from every this many of its points (and its last).
+_CURVE_STRIDE = 4
+#: The chance of a false match is kept per block of this many px (a power of two) ...
+BLOCK_PX = 4
+#: ... which is 2 ** this.
+_SHIFT = 2
 #: Cell of the observed dots' look-up grid, px.
 _CELL = 4.0
 #: Most records of found dots of one window and slit.
@@ -86,12 +95,15 @@ class DotEvidence:
     found : (W, N, 2) int16, predicted dots found at the best slope
     usable : (W, N, 2) int16, predicted dots that could be seen (in the image)
     slope : (W, N, 2) float32, the best slope across the stripe
+    kept : (W, N) bool, the slits scored with the slope marginalised (those not far below
+        the window's best at the slope 0); the others' scores are a lower bound
     """
 
     llr: F32
     found: NDArray[np.int16]
     usable: NDArray[np.int16]
     slope: F32
+    kept: NDArray[np.bool_]
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,32 +139,41 @@ class GapEvidence:
 def false_match_map(
     dots: DotCentres,
     near: NDArray[np.bool_],
-    distance: F32,
-    clearance_px: float,
+    near_zone: NDArray[np.bool_],
     radius_px: float,
 ) -> F32:
-    """(H, W) float32: the chance that an observed dot lies within :data:`MATCH_TOL_PX` of each
-    place by chance, from the density of the observed dots in the square of half side
-    ``radius_px`` around it, counted apart near the stripes (closer than ``clearance_px``) and
-    clear of them; between 1e-3 and 0.5."""
-    h, w = distance.shape
-    zone_near = distance < clearance_px
-    r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
-    k = 2 * max(1, int(round(radius_px))) + 1
-    out = np.empty((h, w), np.float32)
-    for zone, sel in ((zone_near, near), (~zone_near, ~near)):
-        cnt = np.zeros((h, w), np.float32)
+    """(2, Hb, Wb) float32: per block of :data:`BLOCK_PX` x :data:`BLOCK_PX` px, the chance
+    that an observed dot lies within :data:`MATCH_TOL_PX` of a place there by chance, clear of
+    the stripes (0) and near one (1): from the density of the observed dots of that zone in
+    the square of half side ``radius_px`` around the block, the frame's density of the zone
+    weighing as much as :data:`_PRIOR_AREA` px of it; between :data:`_MIN_P_FALSE` and 0.5.
+
+    Parameters
+    ----------
+    dots : the observed dots
+    near : (M,) bool, the dots near a stripe
+    near_zone : (H, W) bool, the places near a stripe
+    radius_px : px
+    """
+    h, w = near_zone.shape
+    hb, wb = -(-h // BLOCK_PX), -(-w // BLOCK_PX)
+    pad = np.zeros((hb * BLOCK_PX, wb * BLOCK_PX), np.float32)
+    pad[:h, :w] = near_zone
+    near_area = pad.reshape(hb, BLOCK_PX, wb, BLOCK_PX).sum(axis=(1, 3))
+    pad[:h, :w] = ~near_zone
+    clear_area = pad.reshape(hb, BLOCK_PX, wb, BLOCK_PX).sum(axis=(1, 3))
+    r = np.clip(dots.v.astype(np.intp) // BLOCK_PX, 0, hb - 1)
+    c = np.clip(dots.u.astype(np.intp) // BLOCK_PX, 0, wb - 1)
+    k = 2 * max(1, int(round(radius_px / BLOCK_PX))) + 1
+    out = np.empty((2, hb, wb), np.float32)
+    for z, area0, sel in ((0, clear_area, ~near), (1, near_area, near)):
+        cnt = np.zeros((hb, wb), np.float32)
         np.add.at(cnt, (r[sel], c[sel]), 1.0)
         n = cv2.boxFilter(cnt, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        area = cv2.boxFilter(
-            zone.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT
-        )
-        # the zone's density over the frame weighs as much as _PRIOR_AREA px of its own
-        rho0 = np.count_nonzero(sel) / max(np.count_nonzero(zone), 1)
+        area = cv2.boxFilter(area0, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        rho0 = np.count_nonzero(sel) / max(float(area0.sum()), 1.0)
         rho = (n + np.float32(_PRIOR_AREA * rho0)) / (area + np.float32(_PRIOR_AREA))
-        rho *= np.float32(-math.pi * MATCH_TOL_PX**2)
-        out[zone] = (np.float32(1.0) - np.exp(rho))[zone]
+        out[z] = np.float32(1.0) - np.exp(rho * np.float32(-math.pi * MATCH_TOL_PX**2))
     return np.clip(out, _MIN_P_FALSE, 0.5)
 
 
@@ -182,8 +203,14 @@ class FrameDots:
     near : (M,) bool, the dots closer than ``clearance_px`` to a stripe centre
     distance : (H, W) float32, px, distance to the nearest stripe centre
     clearance_px : px
-    p_false : (H, W) float32, :func:`false_match_map`
+    p_false : (2, Hb, Wb) float32, :func:`false_match_map`
     grid : the dots' look-up grid (:func:`dot_grid`)
+    near_zone : (H, W) uint8, 1 near a stripe
+    hit, miss : (2, Hb, Wb) float32, per zone (clear, near) and block, the log-likelihood ratio
+        of a dot predicted there found and missed: ``log(p_det / p_false)``,
+        ``log((1 - p_det) / (1 - p_false))`` (``p_det`` of :data:`P_DETECT`)
+    found : (H, W) uint8, 1 where an observed dot's centre lies within :data:`MATCH_TOL_PX` of
+        the pixel's centre (to the pixel: for the first, quick look at every slit)
     """
 
     dots: DotCentres
@@ -192,6 +219,10 @@ class FrameDots:
     clearance_px: float
     p_false: F32
     grid: tuple
+    near_zone: NDArray[np.uint8]
+    hit: F32
+    miss: F32
+    found: NDArray[np.uint8]
 
     @classmethod
     def make(
@@ -204,8 +235,23 @@ class FrameDots:
     ) -> FrameDots:
         """The frame's dots with their chance-match map (over squares of half side
         ``density_radius_px``) and look-up grid."""
-        pf = false_match_map(dots, near, distance, clearance_px, density_radius_px)
-        return cls(dots, near, distance, float(clearance_px), pf, dot_grid(dots, distance.shape))
+        near_zone = distance < clearance_px
+        pf = false_match_map(dots, near, near_zone, density_radius_px)
+        p_det = np.array(P_DETECT, np.float32)[:, None, None]
+        hit = np.log(p_det / pf)
+        miss = np.log((np.float32(1.0) - p_det) / (np.float32(1.0) - pf))
+        grid = dot_grid(dots, distance.shape)
+        zone = near_zone.view(np.uint8)
+        h, w = distance.shape
+        found = np.zeros((h, w), np.uint8)
+        found[
+            np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1),
+            np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1),
+        ] = 1
+        rad = int(math.floor(MATCH_TOL_PX))
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+        found = cv2.dilate(found, disk)
+        return cls(dots, near, distance, float(clearance_px), pf, grid, zone, hit, miss, found)
 
     def kernel_args(self) -> tuple:
         g_order, g_start, gnx, gny = self.grid
@@ -217,10 +263,10 @@ class FrameDots:
             gnx,
             gny,
             _CELL,
-            self.distance,
-            self.clearance_px,
-            self.p_false,
-            np.array(P_DETECT),
+            self.found,
+            self.near_zone,
+            self.hit,
+            self.miss,
             MATCH_TOL_PX,
             SLOPE_MAX,
             _SLOPE_STEPS,
@@ -277,6 +323,7 @@ def dot_evidence(
     found = np.zeros((nw, n, 2), np.int16)
     used = np.zeros((nw, n, 2), np.int16)
     slope = np.zeros((nw, n, 2), np.float32)
+    kept = np.zeros((nw, n), bool)
     if nw:
         (planes, O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb), cam = _rig_args(rig)
         _window_kernel(
@@ -289,12 +336,14 @@ def dot_evidence(
             O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb, float(rig.phi_sign),
             *cam,
             *frame.kernel_args(),
+            _KEEP,
             llr,
             found,
             used,
             slope,
+            kept,
         )  # fmt: skip
-    return DotEvidence(llr, found, used, slope)
+    return DotEvidence(llr, found, used, slope, kept)
 
 
 def gap_evidence(
@@ -305,6 +354,7 @@ def gap_evidence(
     b_order: NDArray[np.intp],
     b_start: NDArray[np.intp],
     frame: FrameDots,
+    pairs: NDArray[np.bool_] | None = None,
 ) -> GapEvidence:
     """The dots between pieces side by side in the rows, as one surface and apart.
 
@@ -316,10 +366,12 @@ def gap_evidence(
         (those in the rows it shares with the right piece)
     b_order, b_start : the same for the right piece
     frame : the frame's dots
+    pairs : (P, N) bool, the slits k of the left piece (k + 1 of the right) worth scoring;
+        default all
 
     Returns
     -------
-    GapEvidence
+    GapEvidence (NaN for the pairs not scored)
     """
     n = rig.num_slits
     ng = len(a_start) - 1
@@ -327,6 +379,8 @@ def gap_evidence(
     free_a = np.full((ng, n), np.nan, np.float32)
     free_b = np.full((ng, n), np.nan, np.float32)
     graze = np.full((ng, n), np.nan, np.float32)
+    if pairs is None:
+        pairs = np.ones((ng, n), bool)
     if ng:
         (planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb), cam = _rig_args(rig)
         _gap_kernel(
@@ -339,6 +393,7 @@ def gap_evidence(
             planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb,
             *cam,
             *frame.kernel_args(),
+            np.ascontiguousarray(pairs),
             fixed,
             free_a,
             free_b,
@@ -366,23 +421,25 @@ def _project(x, y, z, cam, R, t, dist):
 
 @njit(cache=True)
 def _curve(C, rays, order, a0, nt, plane, O, F, R, t, ps, ph, rr, idx):
-    """The stripe points ``order[a0:a0+nt]`` under a slit plane (4,): their angles (``ph``
-    across, ``ps`` along) and range ``rr`` seen from the dot source, and ``idx`` their order
-    by ``ps``. Returns (ok, mean camera depth); not ok where a line of sight misses the plane
-    or meets it behind the camera."""
+    """The stripe points ``order[a0:a0+nt]`` (every :data:`_CURVE_STRIDE`-th and the last)
+    under a slit plane (4,): their angles (``ph`` across, ``ps`` along) and range ``rr`` seen
+    from the dot source, and ``idx`` their order by ``ps``. Returns (ok, mean camera depth,
+    the number of curve points); not ok where a line of sight misses the plane or meets it
+    behind the camera."""
     nx_, ny_, nz_, nd_ = plane[0], plane[1], plane[2], plane[3]
     if not np.isfinite(nx_):
-        return False, 0.0
+        return False, 0.0, 0
     num = -(nx_ * C[0] + ny_ * C[1] + nz_ * C[2] + nd_)
     zsum = 0.0
-    for i in range(nt):
-        p = order[a0 + i]
+    m = (nt - 1) // _CURVE_STRIDE + 2 if nt > 1 else 1
+    for i in range(m):
+        p = order[a0 + min(i * _CURVE_STRIDE, nt - 1)]
         den = nx_ * rays[p, 0] + ny_ * rays[p, 1] + nz_ * rays[p, 2]
         if abs(den) < 1e-12:
-            return False, 0.0
+            return False, 0.0, 0
         s = num / den
         if s <= 0:
-            return False, 0.0
+            return False, 0.0, 0
         X = C[0] + s * rays[p, 0]
         Y = C[1] + s * rays[p, 1]
         Z = C[2] + s * rays[p, 2]
@@ -396,14 +453,14 @@ def _curve(C, rays, order, a0, nt, plane, O, F, R, t, ps, ph, rr, idx):
         ps[i] = math.asin(min(1.0, max(-1.0, ly / rn)))
         rr[i] = rn
         idx[i] = i
-    for i in range(1, nt):  # by psi (insertion sort: the points come nearly in order)
+    for i in range(1, m):  # by psi (insertion sort: the points come nearly in order)
         j = i
         while j > 0 and ps[idx[j - 1]] > ps[idx[j]]:
             tmp = idx[j - 1]
             idx[j - 1] = idx[j]
             idx[j] = tmp
             j -= 1
-    return True, zsum / nt
+    return True, zsum / m, m
 
 
 @njit(cache=True, inline="always")
@@ -421,6 +478,15 @@ def _at(ps, ph, rr, idx, nt, psj):
 
 
 @njit(cache=True, inline="always")
+def _range(rc, phc, phj, g):
+    """The range of a dot at the angle ``phj`` across the slits on the plane through the curve's
+    point at the angle ``phc`` and range ``rc`` (same angle along the slits), tilted about the
+    slit axis by atan(g) from facing the dot source's axis: g = 0 is a plane at right angles to
+    the dots' mean ray."""
+    return rc * (math.cos(phc) + g * math.sin(phc)) / (math.cos(phj) + g * math.sin(phj))
+
+
+@njit(cache=True, inline="always")
 def _direction(phi, psi, F):
     """World unit direction of the dot-frame angles (phi, psi)."""
     cp = math.cos(psi)
@@ -433,16 +499,15 @@ def _direction(phi, psi, F):
 
 
 @njit(cache=True, inline="always")
-def _weights(u0, v0, w, h, distance, clearance, p_false, p_det):
+def _weights(u0, v0, w, h, zone_m, hit_w, miss_w):
     """(usable, log-ratio of a found dot, log-ratio of a missed one) of a dot predicted at
-    (u0, v0): usable inside the image; the chance of a false match read at its place."""
+    (u0, v0): usable inside the image; the ratios read at its place."""
     if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
         return False, 0.0, 0.0
     iv = int(v0 + 0.5)
     iu = int(u0 + 0.5)
-    zone = 1 if distance[iv, iu] < clearance else 0
-    pf = p_false[iv, iu]
-    return True, math.log(p_det[zone] / pf), math.log((1.0 - p_det[zone]) / (1.0 - pf))
+    z = zone_m[iv, iu]
+    return True, hit_w[z, iv >> _SHIFT, iu >> _SHIFT], miss_w[z, iv >> _SHIFT, iu >> _SHIFT]
 
 
 @njit(cache=True)
@@ -492,13 +557,13 @@ def _path_slopes(u0, v0, bu, bv, cu, cv, G, tol, ou, ov, g_order, g_start, gnx, 
 
 @njit(cache=True)
 def _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx, gny, cell,
-                 distance, clearance, p_false, p_det, gvals, mg, mt, score, count):  # fmt: skip
+                 zone_m, hit_w, miss_w, gvals, mg, mt, score, count):  # fmt: skip
     """Add one predicted dot to the slope grid ``gvals`` (S,): its place at each slope on the
     path ``p(g)`` (the parabola through (um, vm), (u0, v0), (up, vp) at g = -G, 0, G) is found
     when an observed dot lies within ``tol`` px; ``score`` (S,) gains the log-ratio of found or
     missed there (with the chance of a false match read at that place), ``count`` (S,) the
     found dots. Places outside the image count neither way. ``mg``, ``mt`` are work space."""
-    h, w = distance.shape
+    h, w = zone_m.shape
     bu = (up - um) / (2.0 * G)
     bv = (vp - vm) / (2.0 * G)
     cu = (up + um - 2.0 * u0) / (2.0 * G * G)
@@ -513,18 +578,16 @@ def _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx, 
             continue
         iv = int(pv + 0.5)
         iu = int(pu + 0.5)
-        zone = 1 if distance[iv, iu] < clearance else 0
-        pf = p_false[iv, iu]
         hit = False
         for e in range(nm):
             if abs(mg[e] - g) <= mt[e]:
                 hit = True
                 break
         if hit:
-            score[gi] += math.log(p_det[zone] / pf)
+            score[gi] += hit_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
             count[gi] += 1
         else:
-            score[gi] += math.log((1.0 - p_det[zone]) / (1.0 - pf))
+            score[gi] += miss_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
 
 
 @njit(cache=True)
@@ -541,17 +604,88 @@ def _log_mean_exp(x):
 
 
 @njit(cache=True)
+def _found_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell):
+    """Whether an observed dot lies within ``tol`` px of (u0, v0)."""
+    cx0 = max(0, int((u0 - tol) / cell))
+    cx1 = min(gnx - 1, int((u0 + tol) / cell))
+    cy0 = max(0, int((v0 - tol) / cell))
+    cy1 = min(gny - 1, int((v0 + tol) / cell))
+    for cy in range(cy0, cy1 + 1):
+        for cx in range(cx0, cx1 + 1):
+            cidx = cy * gnx + cx
+            for e in range(g_start[cidx], g_start[cidx + 1]):
+                o = g_order[e]
+                if (ou[o] - u0) ** 2 + (ov[o] - v0) ** 2 <= tol * tol:
+                    return True
+    return False
+
+
+@njit(cache=True)
+def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb, phi_sign,
+                      O, F, dphi, dpsi, d_order, b_start, phi0, bw, cam, R, t, dist, ou, ov,
+                      g_order, g_start, gnx, gny, cell, found_m, zone_m, hit_w, miss_w, tol, G, gvals, mg, mt,
+                      score, count, nuse):  # fmt: skip
+    """The dots of one slit hypothesis of a window (its curve ``ps``, ``ph``, ``rr`` sorted by
+    ``idx``): per side, into ``score`` (2, S) and ``count`` (2, S) over the slopes ``gvals``
+    when ``full``, else at the slope 0 only (column 0); ``nuse`` (2,) the dots in the image."""
+    h, w = zone_m.shape
+    nb = len(b_start) - 1
+    b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
+    b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
+    for b in range(b0, b1 + 1):
+        lo, hi = b_start[b], b_start[b + 1]
+        while lo < hi:  # the bin's first dot with psi >= psmin
+            mid = (lo + hi) // 2
+            if dpsi[d_order[mid]] < psmin:
+                lo = mid + 1
+            else:
+                hi = mid
+        for q in range(lo, b_start[b + 1]):
+            j = d_order[q]
+            psj = dpsi[j]
+            if psj > psmax:
+                break
+            phc, rc = _at(ps, ph, rr, idx, nc, psj)
+            delta = dphi[j] - phc
+            if abs(delta) > hb:
+                continue
+            side = 1 if delta * phi_sign > 0 else 0
+            dx, dy, dz = _direction(dphi[j], psj, F)
+            r0 = _range(rc, phc, dphi[j], 0.0)
+            u0, v0 = _project(O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist)
+            if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
+                continue
+            nuse[side] += 1
+            if not full:
+                iv, iu = int(v0 + 0.5), int(u0 + 0.5)
+                if found_m[iv, iu]:
+                    score[side, 0] += hit_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
+                    count[side, 0] += 1
+                else:
+                    score[side, 0] += miss_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
+                continue
+            rm = _range(rc, phc, dphi[j], -G)
+            rp = _range(rc, phc, dphi[j], G)
+            um, vm = _project(O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist)
+            up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
+            if not (np.isfinite(um) and np.isfinite(up)):
+                um, vm, up, vp = u0, v0, u0, v0
+            _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx, gny,
+                         cell, zone_m, hit_w, miss_w, gvals, mg, mt, score[side], count[side])  # fmt: skip
+
+
+@njit(cache=True)
 def _window_kernel(
     C, rays, order, win_start, planes, hyp, O, F, dphi, dpsi, d_order, b_start, phi0, bw,
     half_band, phi_sign, cam, R, t, dist, zmin, zmax, ou, ov, g_order, g_start, gnx, gny,
-    cell, distance, clearance, p_false, p_det, tol, G, steps, llr, found, used, slope,
+    cell, found_m, zone_m, hit_w, miss_w, tol, G, steps, keep, llr, found, used, slope, kept,
 ):  # fmt: skip
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
-    ``used`` and ``slope``."""
+    ``used`` and ``slope``: every slit at the slope 0 first, then those within ``keep`` of the
+    window's best with the slope marginalised (the others keep the marginal's lower bound:
+    their score at the slope 0 as if all other slopes found nothing)."""
     nw = len(win_start) - 1
     nslit = planes.shape[0]
-    h, w = distance.shape
-    nb = len(b_start) - 1
     gvals = _slope_grid(G, steps)
     ns = len(gvals)
     maxt = 1
@@ -566,72 +700,54 @@ def _window_kernel(
     score = np.zeros((2, ns))
     count = np.zeros((2, ns), np.int64)
     nuse = np.zeros(2, np.int64)
+    quick = np.empty(nslit)
     for wi in range(nw):
         a0 = win_start[wi]
         nt = win_start[wi + 1] - a0
         if nt <= 0:
             continue
-        for k in range(nslit):
-            if not hyp[wi, k] or not np.isfinite(half_band[k]):
-                continue
-            ok, zmean = _curve(C, rays, order, a0, nt, planes[k], O, F, R, t, ps, ph, rr, idx)
-            if not ok or zmean < zmin or zmean > zmax:
-                continue
-            psmin, psmax = ps[idx[0]], ps[idx[nt - 1]]
-            phmin, phmax = ph[0], ph[0]
-            for i in range(nt):
-                phmin = min(phmin, ph[i])
-                phmax = max(phmax, ph[i])
-            hb = half_band[k]
-            b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
-            b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
-            score[:] = 0.0
-            count[:] = 0
-            nuse[:] = 0
-            for b in range(b0, b1 + 1):
-                lo, hi = b_start[b], b_start[b + 1]
-                while lo < hi:  # the bin's first dot with psi >= psmin
-                    mid = (lo + hi) // 2
-                    if dpsi[d_order[mid]] < psmin:
-                        lo = mid + 1
+        for rnd in range(2):
+            if rnd == 1:  # the slits worth the slope: the best at the slope 0
+                ranked = np.argsort(-quick)
+            for r in range(nslit):
+                k = r if rnd == 0 else ranked[r]
+                if rnd == 0:
+                    quick[k] = -np.inf
+                elif not quick[k] >= quick[ranked[0]] - keep:  # (also -inf)
+                    break
+                if not hyp[wi, k] or not np.isfinite(half_band[k]):
+                    continue
+                ok, zmean, nc = _curve(
+                    C, rays, order, a0, nt, planes[k], O, F, R, t, ps, ph, rr, idx
+                )
+                if not ok or zmean < zmin or zmean > zmax:
+                    continue
+                phmin, phmax = ph[0], ph[0]
+                for i in range(nc):
+                    phmin = min(phmin, ph[i])
+                    phmax = max(phmax, ph[i])
+                score[:] = 0.0
+                count[:] = 0
+                nuse[:] = 0
+                _score_hypothesis(rnd == 1, ps[idx[0]], ps[idx[nc - 1]], phmin, phmax, ps, ph,
+                                  rr, idx, nc, half_band[k], phi_sign, O, F, dphi, dpsi,
+                                  d_order, b_start, phi0, bw, cam, R, t, dist, ou, ov,
+                                  g_order, g_start, gnx, gny, cell, found_m, zone_m, hit_w, miss_w, tol, G,
+                                  gvals, mg, mt, score, count, nuse)  # fmt: skip
+                for sd in range(2):
+                    if rnd == 0:  # the marginal's lower bound: the slope 0 alone
+                        llr[wi, k, sd] = score[sd, 0] - math.log(ns)
+                        found[wi, k, sd] = count[sd, 0]
+                        used[wi, k, sd] = nuse[sd]
+                        slope[wi, k, sd] = 0.0
                     else:
-                        hi = mid
-                for q in range(lo, b_start[b + 1]):
-                    j = d_order[q]
-                    psj = dpsi[j]
-                    if psj > psmax:
-                        break
-                    phc, rc = _at(ps, ph, rr, idx, nt, psj)
-                    delta = dphi[j] - phc
-                    if abs(delta) > hb:
-                        continue
-                    side = 1 if delta * phi_sign > 0 else 0
-                    dx, dy, dz = _direction(dphi[j], psj, F)
-                    u0, v0 = _project(
-                        O[0] + rc * dx, O[1] + rc * dy, O[2] + rc * dz, cam, R, t, dist
-                    )
-                    if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
-                        continue
-                    nuse[side] += 1
-                    rm = rc * (1.0 - G * delta)
-                    rp = rc * (1.0 + G * delta)
-                    um, vm = _project(
-                        O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
-                    )
-                    up, vp = _project(
-                        O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist
-                    )
-                    if not (np.isfinite(um) and np.isfinite(up)):
-                        um, vm, up, vp = u0, v0, u0, v0
-                    _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx,
-                                 gny, cell, distance, clearance, p_false, p_det, gvals, mg, mt,
-                                 score[side], count[side])  # fmt: skip
-            for sd in range(2):
-                lm, bi = _log_mean_exp(score[sd])
-                llr[wi, k, sd] = lm
-                found[wi, k, sd] = count[sd, bi]
-                used[wi, k, sd] = nuse[sd]
-                slope[wi, k, sd] = gvals[bi]
+                        lm, bi = _log_mean_exp(score[sd])
+                        llr[wi, k, sd] = lm
+                        found[wi, k, sd] = count[sd, bi]
+                        slope[wi, k, sd] = gvals[bi]
+                        kept[wi, k] = True
+                if rnd == 0:
+                    quick[k] = score[0, 0] + score[1, 0]
 
 
 @njit(cache=True)
@@ -649,12 +765,12 @@ def _slope_grid(G, steps):
 def _gap_kernel(
     C, rays, a_order, a_start, b_order, b_start_, planes, O, F, dphi, dpsi, d_order, b_start,
     phi0, bw, half_band, cam, R, t, dist, zmin, zmax, ou, ov, g_order, g_start, gnx, gny, cell,
-    distance, clearance, p_false, p_det, tol, G, steps, fixed, free_a, free_b, graze,
+    found_m, zone_m, hit_w, miss_w, tol, G, steps, pairs, fixed, free_a, free_b, graze,
 ):  # fmt: skip
     """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one)."""
     ngap = len(a_start) - 1
     nslit = planes.shape[0]
-    h, w = distance.shape
+    h, w = zone_m.shape
     nb = len(b_start) - 1
     maxt = 1
     for p in range(ngap):
@@ -673,18 +789,20 @@ def _gap_kernel(
     score = np.zeros((2, len(gvals)))
     count = np.zeros((2, len(gvals)), np.int64)
     for p in range(ngap):
-        a0, na = a_start[p], a_start[p + 1] - a_start[p]
-        c0, nbp = b_start_[p], b_start_[p + 1] - b_start_[p]
-        if na < 2 or nbp < 2:
+        a0, na0 = a_start[p], a_start[p + 1] - a_start[p]
+        c0, nb0 = b_start_[p], b_start_[p + 1] - b_start_[p]
+        if na0 < 2 or nb0 < 2:
             continue
         for k in range(nslit - 1):
             if not (np.isfinite(half_band[k]) and np.isfinite(half_band[k + 1])):
                 continue
-            oka, za = _curve(C, rays, a_order, a0, na, planes[k], O, F, R, t, psa, pha, rra, ia)
+            oka, za, na = _curve(
+                C, rays, a_order, a0, na0, planes[k], O, F, R, t, psa, pha, rra, ia
+            )
             if not oka or za < zmin or za > zmax:
                 continue
-            okb, zb = _curve(
-                C, rays, b_order, c0, nbp, planes[k + 1], O, F, R, t, psb, phb, rrb, ib
+            okb, zb, nbp = _curve(
+                C, rays, b_order, c0, nb0, planes[k + 1], O, F, R, t, psb, phb, rrb, ib
             )
             if not okb or zb < zmin or zb > zmax:
                 continue
@@ -701,6 +819,29 @@ def _gap_kernel(
                 phmax = max(phmax, phb[i])
             b0 = max(0, int(math.floor((phmin - phi0) / bw)))
             b1 = min(nb - 1, int(math.floor((phmax - phi0) / bw)))
+            # how nearly the surface through both stripes grazes the camera's or the dot
+            # source's line of sight, midway
+            psm = 0.5 * (psmin + psmax)
+            pa, ra = _at(psa, pha, rra, ia, na, psm)
+            pb, rb = _at(psb, phb, rrb, ib, nbp, psm)
+            ax_, ay_, az_ = _direction(pa, psm, F)
+            bx_, by_, bz_ = _direction(pb, psm, F)
+            sx = rb * bx_ - ra * ax_
+            sy = rb * by_ - ra * ay_
+            sz = rb * bz_ - ra * az_
+            sn = math.sqrt(sx * sx + sy * sy + sz * sz) + 1e-12
+            mx = O[0] + 0.5 * (ra * ax_ + rb * bx_)
+            my = O[1] + 0.5 * (ra * ay_ + rb * by_)
+            mz = O[2] + 0.5 * (ra * az_ + rb * bz_)
+            cx_, cy_, cz_ = mx - C[0], my - C[1], mz - C[2]
+            cn = math.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_)
+            qx_, qy_, qz_ = mx - O[0], my - O[1], mz - O[2]
+            qn = math.sqrt(qx_ * qx_ + qy_ * qy_ + qz_ * qz_)
+            g1 = abs(sx * cx_ + sy * cy_ + sz * cz_) / (sn * cn)
+            g2 = abs(sx * qx_ + sy * qy_ + sz * qz_) / (sn * qn)
+            graze[p, k] = max(g1, g2)
+            if not pairs[p, k]:
+                continue
             fx = 0.0
             score[:] = 0.0
             count[:] = 0
@@ -728,32 +869,21 @@ def _gap_kernel(
                     # the surface between the two stripes: range linear across
                     r = ra + f * (rb - ra)
                     u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
-                    ok, a_hit, a_miss = _weights(u0, v0, w, h, distance, clearance, p_false, p_det)
+                    ok, a_hit, a_miss = _weights(u0, v0, w, h, zone_m, hit_w, miss_w)
                     if ok:
-                        hit = False
-                        cx0 = max(0, int((u0 - tol) / cell))
-                        cx1 = min(gnx - 1, int((u0 + tol) / cell))
-                        cy0 = max(0, int((v0 - tol) / cell))
-                        cy1 = min(gny - 1, int((v0 + tol) / cell))
-                        for cy in range(cy0, cy1 + 1):
-                            for cx in range(cx0, cx1 + 1):
-                                cidx = cy * gnx + cx
-                                for e in range(g_start[cidx], g_start[cidx + 1]):
-                                    o = g_order[e]
-                                    if (ou[o] - u0) ** 2 + (ov[o] - v0) ** 2 <= tol * tol:
-                                        hit = True
+                        hit = _found_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell)
                         fx += a_hit if hit else a_miss
                     # the same dot with a free slope about the nearer stripe
                     side = 0 if f <= 0.5 else 1
                     pc, rc = (pa, ra) if side == 0 else (pb, rb)
-                    delta = dphi[j] - pc
+                    r0 = _range(rc, pc, dphi[j], 0.0)
                     u0, v0 = _project(
-                        O[0] + rc * dx, O[1] + rc * dy, O[2] + rc * dz, cam, R, t, dist
+                        O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist
                     )
                     if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                         continue
-                    rm = rc * (1.0 - G * delta)
-                    rp = rc * (1.0 + G * delta)
+                    rm = _range(rc, pc, dphi[j], -G)
+                    rp = _range(rc, pc, dphi[j], G)
                     um, vm = _project(
                         O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
                     )
@@ -763,30 +893,9 @@ def _gap_kernel(
                     if not (np.isfinite(um) and np.isfinite(up)):
                         um, vm, up, vp = u0, v0, u0, v0
                     _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx,
-                                 gny, cell, distance, clearance, p_false, p_det, gvals, mg, mt,
+                                 gny, cell, zone_m, hit_w, miss_w, gvals, mg, mt,
                                  score[side], count[side])  # fmt: skip
             fixed[p, k] = fx
-            # how nearly the surface through both stripes grazes the camera's or the dot
-            # source's line of sight, midway
-            psm = 0.5 * (psmin + psmax)
-            pa, ra = _at(psa, pha, rra, ia, na, psm)
-            pb, rb = _at(psb, phb, rrb, ib, nbp, psm)
-            ax_, ay_, az_ = _direction(pa, psm, F)
-            bx_, by_, bz_ = _direction(pb, psm, F)
-            sx = rb * bx_ - ra * ax_
-            sy = rb * by_ - ra * ay_
-            sz = rb * bz_ - ra * az_
-            sn = math.sqrt(sx * sx + sy * sy + sz * sz) + 1e-12
-            mx = O[0] + 0.5 * (ra * ax_ + rb * bx_)
-            my = O[1] + 0.5 * (ra * ay_ + rb * by_)
-            mz = O[2] + 0.5 * (ra * az_ + rb * bz_)
-            cx_, cy_, cz_ = mx - C[0], my - C[1], mz - C[2]
-            cn = math.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_)
-            qx_, qy_, qz_ = mx - O[0], my - O[1], mz - O[2]
-            qn = math.sqrt(qx_ * qx_ + qy_ * qy_ + qz_ * qz_)
-            g1 = abs(sx * cx_ + sy * cy_ + sz * cz_) / (sn * cn)
-            g2 = abs(sx * qx_ + sy * qy_ + sz * qz_) / (sn * qn)
-            graze[p, k] = max(g1, g2)
             free_a[p, k] = _log_mean_exp(score[0])[0]
             free_b[p, k] = _log_mean_exp(score[1])[0]
 

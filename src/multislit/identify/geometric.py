@@ -129,14 +129,19 @@ def identify_geometry(
     nw = win.num_windows
     window = Windows(win.order, win.start, win.segment, np.arange(nw)).piece_of_points(k)
     gp = gaps(ex.u, ex.v, window, _GAP_SPACINGS * reference.spacing_px, _GAP_ROWS)
-    ge = gap_evidence(rig, rays, gp.a_order, gp.a_start, gp.b_order, gp.b_start, frame)
+    # the pairs (k, k + 1) worth the dots between: both among their windows' best
+    pairs = np.zeros((gp.num_gaps, rig.num_slits), bool)
+    pairs[:, :-1] = ev.kept[gp.a, :-1] & ev.kept[gp.b, 1:]
+    ge = gap_evidence(rig, rays, gp.a_order, gp.a_start, gp.b_order, gp.b_start, frame, pairs)
     ca, cb, bonus, change = _continuations(ex, segment, win)
+    # the dots between them count where scored; elsewhere the pieces' own evidence stands
+    between = np.where(np.isfinite(ge.fixed), ge.bonus, 0.0).astype(np.float64)
     lab = label_pieces(
         scores,
         gp.a,
         gp.b,
-        ge.bonus.astype(np.float64),
-        ge.graze < _GRAZE,
+        between,
+        np.isfinite(ge.graze) & (ge.graze < _GRAZE),
         gp.rows,
         ca,
         cb,
@@ -205,13 +210,9 @@ def _continuations(ex: SlitExtraction, segment: I64, win: Windows) -> tuple[I64,
     same = np.flatnonzero(win.segment[1:] == win.segment[:-1])
     sa, sb = continuations(ex.u, ex.v, segment, _CONTINUATION_ROWS, _CONTINUATION_PX)
     if len(sa):
-        # the median brightness of the windows that meet: a step is another surface
-        wpeak = np.array(
-            [
-                np.median(ex.peak[win.order[a:b]])
-                for a, b in zip(win.start[:-1], win.start[1:], strict=True)
-            ]
-        )
+        # the (geometric) mean brightness of the windows that meet: a step is another surface
+        logp = np.log(np.maximum(ex.peak[win.order], 1e-6))
+        wpeak = np.exp(np.add.reduceat(logp, win.start[:-1]) / np.diff(win.start))
         nseg0 = int(win.segment.max()) + 1
         f0 = np.full(nseg0, -1, np.int64)
         l0 = np.full(nseg0, -1, np.int64)

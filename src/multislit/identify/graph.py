@@ -39,6 +39,8 @@ _COUPLING_ROWS = 40.0
 #: Belief propagation: sweeps and damping (share of the old message kept).
 _SWEEPS = 30
 _DAMPING = 0.5
+#: ... stopping early once no message moves by more than this (nats).
+_SETTLED = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,6 +131,7 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, swee
     belief = unary.copy()
     tmp = np.empty(nl)
     for _ in range(sweeps):
+        moved = 0.0
         belief[:, :] = unary
         for e in range(ne):
             a = ga[e] if e < ng else ca[e - ng]
@@ -147,7 +150,9 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, swee
                 _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
             m = tmp.max()
             for k in range(nl):
-                fwd[e, k] = damping * fwd[e, k] + (1.0 - damping) * (tmp[k] - m)
+                x = damping * fwd[e, k] + (1.0 - damping) * (tmp[k] - m)
+                moved = max(moved, abs(x - fwd[e, k]))
+                fwd[e, k] = x
             h = belief[b] - fwd[e]
             if e < ng:
                 _gap_message(h, theta[e], penalty[e], split[e], False, tmp)
@@ -155,7 +160,11 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, swee
                 _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
             m = tmp.max()
             for k in range(nl):
-                bwd[e, k] = damping * bwd[e, k] + (1.0 - damping) * (tmp[k] - m)
+                x = damping * bwd[e, k] + (1.0 - damping) * (tmp[k] - m)
+                moved = max(moved, abs(x - bwd[e, k]))
+                bwd[e, k] = x
+        if moved < _SETTLED:
+            break
     belief[:, :] = unary
     for e in range(ne):
         a = ga[e] if e < ng else ca[e - ng]
