@@ -362,11 +362,19 @@ def _scan_option_flags(p: argparse.ArgumentParser) -> None:
         "template (the paper's template matching with the reference images)",
     )
     p.add_argument(
+        "--dot-points",
+        action="store_true",
+        default=None,
+        help="also measure the dots the identification by the dots' geometry identified (each "
+        "where its line of sight crosses its dot's ray): points between the slits, written "
+        "to the PLY with the property dot = 1",
+    )
+    p.add_argument(
         "--options",
         metavar="FILE.json",
         help='the scan\'s options, stage by stage: {"extraction": {...}, '
-        '"identification": {...}, "refinement": {...}}; --channel, --reject-texture and '
-        "--method override it",
+        '"identification": {...}, "refinement": {...}}; --channel, --reject-texture, '
+        "--method and --dot-points override it",
     )
 
 
@@ -386,6 +394,8 @@ def _scan_options(args: argparse.Namespace):
         options = replace(
             options, identification=replace(options.identification, method=args.method)
         )
+    if getattr(args, "dot_points", None):
+        options = replace(options, refinement=replace(options.refinement, dot_points=True))
     return options
 
 

@@ -42,7 +42,7 @@ from multislit.identify.reference import (
     intersect_line_curves,
     prepare_reference,
 )
-from multislit.identify.result import SOURCES, Identification, PieceLabels
+from multislit.identify.result import SOURCES, DotMatches, Identification, PieceLabels
 from multislit.identify.rig import RigGeometry, rig_geometry
 from multislit.identify.segments import split_at_brightness_steps
 
@@ -50,6 +50,7 @@ __all__ = [
     "IdentifyOptions",
     "METHODS",
     "PieceLabels",
+    "DotMatches",
     "SOURCES",
     "RigGeometry",
     "rig_geometry",

@@ -39,6 +39,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from multislit.identify.result import DotMatches
 from multislit.identify.rig import RigGeometry
 from multislit.stripes.dots import (
     MIN_DOT_RATIO,
@@ -912,3 +913,156 @@ def frame_dots(extraction, spacing_px: float) -> FrameDots:
     found = find_dots(ex.dots, ex.noise_sigma, ex.dot_size_px)
     dots, near = dots_clear_of_stripes(found, dist, peak, clearance, MIN_DOT_RATIO)
     return FrameDots.make(dots, near, dist, clearance, max(8.0, float(spacing_px)))
+
+
+@njit(cache=True)
+def _nearest_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell):
+    """The observed dot nearest (u0, v0) within ``tol`` px (-1: none)."""
+    cx0 = max(0, int((u0 - tol) / cell))
+    cx1 = min(gnx - 1, int((u0 + tol) / cell))
+    cy0 = max(0, int((v0 - tol) / cell))
+    cy1 = min(gny - 1, int((v0 + tol) / cell))
+    best = -1
+    bd = tol * tol
+    for cy in range(cy0, cy1 + 1):
+        for cx in range(cx0, cx1 + 1):
+            cidx = cy * gnx + cx
+            for e in range(g_start[cidx], g_start[cidx + 1]):
+                o = g_order[e]
+                d = (ou[o] - u0) ** 2 + (ov[o] - v0) ** 2
+                if d <= bd:
+                    bd = d
+                    best = o
+    return best
+
+
+@njit(cache=True)
+def _match_kernel(
+    C, rays, order, win_start, windows, labels, slopes, planes, O, F, dphi, dpsi, d_order,
+    b_start, phi0, bw, half_band, phi_sign, cam, R, t, dist, ou, ov, g_order, g_start, gnx,
+    gny, cell, tol, out_obs, out_dot, out_win,
+):  # fmt: skip
+    """:func:`dot_matches`: per window of ``windows`` with slit ``labels`` and the slopes
+    ``slopes`` (W', 2) per side, the observed dot nearest each predicted dot (within
+    ``tol``); returns how many pairs were written."""
+    nb = len(b_start) - 1
+    maxt = 1
+    for wi in range(len(win_start) - 1):
+        maxt = max(maxt, win_start[wi + 1] - win_start[wi])
+    ps = np.empty(maxt)
+    ph = np.empty(maxt)
+    rr = np.empty(maxt)
+    idx = np.empty(maxt, np.int64)
+    n = 0
+    for i in range(len(windows)):
+        wi = windows[i]
+        k = labels[i]
+        a0 = win_start[wi]
+        nt = win_start[wi + 1] - a0
+        ok, _, nc = _curve(C, rays, order, a0, nt, planes[k], O, F, R, t, ps, ph, rr, idx)
+        if not ok:
+            continue
+        psmin, psmax = ps[idx[0]], ps[idx[nc - 1]]
+        phmin, phmax = ph[0], ph[0]
+        for q in range(nc):
+            phmin = min(phmin, ph[q])
+            phmax = max(phmax, ph[q])
+        hb = half_band[k]
+        b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
+        b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
+        for b in range(b0, b1 + 1):
+            for q in range(b_start[b], b_start[b + 1]):
+                j = d_order[q]
+                psj = dpsi[j]
+                if psj < psmin:
+                    continue
+                if psj > psmax:
+                    break
+                phc, rc = _at(ps, ph, rr, idx, nc, psj)
+                delta = dphi[j] - phc
+                if abs(delta) > hb:
+                    continue
+                side = 1 if delta * phi_sign > 0 else 0
+                dx, dy, dz = _direction(dphi[j], psj, F)
+                r = _range(rc, phc, dphi[j], slopes[i, side])
+                u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
+                if not np.isfinite(u0):
+                    continue
+                o = _nearest_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell)
+                if o >= 0 and n < len(out_obs):
+                    out_obs[n] = o
+                    out_dot[n] = j
+                    out_win[n] = wi
+                    n += 1
+    return n
+
+
+def dot_matches(
+    rig: RigGeometry,
+    rays: F64,
+    order: NDArray[np.intp],
+    win_start: NDArray[np.intp],
+    frame: FrameDots,
+    windows: NDArray[np.intp],
+    labels: NDArray[np.intp],
+    slopes: F64,
+    confidence: F64,
+) -> DotMatches:
+    """The observed dots the labelled windows' predictions found: each predicted dot of a
+    window (under its slit and at its best slope on each side) paired with the observed dot
+    nearest its place within :data:`MATCH_TOL_PX`; an observed dot that two predictions
+    found is left out (ambiguous).
+
+    Parameters
+    ----------
+    rig, rays, order, win_start, frame : as for :func:`dot_evidence`
+    windows : (W',) intp, the labelled windows
+    labels : (W',) intp, their slits
+    slopes : (W', 2) float64, their best slope on each side
+    confidence : (W',) float64, their confidence
+
+    Returns
+    -------
+    DotMatches
+    """
+    cap = max(16, 64 * len(windows))
+    out_obs = np.empty(cap, np.int64)
+    out_dot = np.empty(cap, np.int64)
+    out_win = np.empty(cap, np.int64)
+    n = 0
+    if len(windows):
+        (planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb), cam = _rig_args(rig)
+        g_order, g_start, gnx, gny = frame.grid
+        n = _match_kernel(
+            rig.camera.centre,
+            np.ascontiguousarray(rays, np.float64),
+            order.astype(np.intp),
+            win_start.astype(np.intp),
+            np.asarray(windows, np.intp),
+            np.asarray(labels, np.intp),
+            np.ascontiguousarray(slopes, np.float64),
+            planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb, float(rig.phi_sign),
+            *cam[:4],
+            frame.dots.u,
+            frame.dots.v,
+            g_order,
+            g_start,
+            gnx,
+            gny,
+            _CELL,
+            MATCH_TOL_PX,
+            out_obs,
+            out_dot,
+            out_win,
+        )  # fmt: skip
+    obs, dot, win = out_obs[:n], out_dot[:n], out_win[:n]
+    # one ray per observed dot and one observed dot per ray
+    once = (np.bincount(obs, minlength=len(frame.dots))[obs] == 1) & (
+        np.bincount(dot, minlength=rig.dots.num_dots)[dot] == 1
+    )
+    obs, dot, win = obs[once], dot[once], win[once]
+    slit = np.zeros(int(np.max(windows, initial=-1)) + 1, np.int64)
+    slit[np.asarray(windows, np.intp)] = labels
+    conf = np.zeros(len(slit))
+    conf[np.asarray(windows, np.intp)] = confidence
+    return DotMatches(frame.dots.u[obs], frame.dots.v[obs], dot, win, slit[win], conf[win])

@@ -27,7 +27,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit.identify.evidence import dot_evidence, frame_dots, gap_evidence
+from multislit.identify.evidence import dot_evidence, dot_matches, frame_dots, gap_evidence
 from multislit.identify.graph import confidence_margin, label_pieces
 from multislit.identify.options import IdentifyOptions
 from multislit.identify.pieces import Windows, continuations, gaps, split_at_kinks, windows
@@ -57,7 +57,10 @@ _GAP_SPACINGS = 3.0
 _GAP_ROWS = 3
 #: Log-likelihood a gap gains when its pieces are neighbouring slits of one surface ...
 _COUPLING = 6.0
-#: ... unless that surface meets a line of sight at less than acos(this) (a step in depth).
+#: ... less where the gap's width is off the widths of the gaps beside it by more than this
+#: factor (a Gaussian in the log of the ratio) ...
+_SPACING_TOLERANCE = 1.3
+#: ... and none where that surface meets a line of sight at less than acos(this).
 _GRAZE = 0.97
 #: Log-likelihood a gap loses when both its pieces carry one slit ...
 _REPEAT_PENALTY = 30.0
@@ -136,6 +139,10 @@ def identify_geometry(
     ca, cb, bonus, change = _continuations(ex, segment, win)
     # the dots between them count where scored; elsewhere the pieces' own evidence stands
     between = np.where(np.isfinite(ge.fixed), ge.bonus, 0.0).astype(np.float64)
+    # a gap much wider or narrower than those beside it is a step between two surfaces more
+    # often than a stretch of one: its coupling weighs less
+    lr = np.log(gp.spacing_ratio) / math.log(_SPACING_TOLERANCE)
+    regular = np.where(np.isfinite(lr), np.exp(-0.5 * lr**2), 1.0)
     lab = label_pieces(
         scores,
         gp.a,
@@ -147,7 +154,7 @@ def identify_geometry(
         cb,
         bonus,
         change,
-        coupling=_COUPLING,
+        coupling=_COUPLING * regular,
         repeat_penalty=_REPEAT_PENALTY,
         split_penalty=_SPLIT,
     )
@@ -162,6 +169,18 @@ def identify_geometry(
     piece[window >= 0] = piece_of_window[window[window >= 0]]
     pieces, dropped = _piece_labels(
         scores, piece_of_window, label, lab.confidence, options.confidence
+    )
+    lw = np.flatnonzero(label >= 0)
+    dots = dot_matches(
+        rig,
+        rays,
+        win.order,
+        win.start,
+        frame,
+        lw,
+        label[lw],
+        ev.slope[lw, label[lw]].astype(np.float64),
+        lab.confidence[lw],
     )
     slit = np.full(k, -1, np.int64)
     conf = np.zeros(k)
@@ -183,6 +202,7 @@ def identify_geometry(
         ex,
         pieces,
         "geometry",
+        dots,
     )
 
 

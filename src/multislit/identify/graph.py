@@ -187,7 +187,7 @@ def label_pieces(
     cont_bonus: F64,
     cont_change: F64,
     *,
-    coupling: float,
+    coupling: float | F64,
     repeat_penalty: float,
     split_penalty: float,
 ) -> Labelling:
@@ -206,7 +206,8 @@ def label_pieces(
     cont_bonus : (C,) float64, log-likelihood a continuation gains when both carry one slit
     cont_change : (C,) float64, log-likelihood it loses when they carry two slits
     coupling : log-likelihood gained by a gap whose pieces are neighbouring slits of one
-        surface (for the full :data:`_COUPLING_ROWS` shared rows; less for fewer)
+        surface (for the full :data:`_COUPLING_ROWS` shared rows; less for fewer); a number,
+        or (G,) one per gap
     repeat_penalty : log-likelihood lost by a gap whose pieces carry one slit
     split_penalty : log-likelihood lost by a gap whose pieces carry two slits that are not
         neighbours of one surface (a step in depth)
@@ -219,7 +220,8 @@ def label_pieces(
     u = np.where(np.isfinite(unary), unary, -1e9)
     w = np.minimum(1.0, np.asarray(gap_rows, np.float64) / _COUPLING_ROWS)
     cont = gap_continuous & np.isfinite(gap_bonus)
-    theta = np.where(cont, coupling * w[:, None] + gap_bonus, np.nan)
+    cw = np.broadcast_to(np.asarray(coupling, np.float64), w.shape) * w
+    theta = np.where(cont, cw[:, None] + gap_bonus, np.nan)
     belief = _propagate(
         np.ascontiguousarray(u, np.float64),
         np.asarray(gap_a, np.int64),

@@ -158,6 +158,9 @@ class Gaps:
     a_order, a_start : gap g's left piece has the points ``a_order[a_start[g]:a_start[g+1]]``
         (in the shared rows, by row)
     b_order, b_start : the same for the right piece
+    spacing_ratio : (G,) float64, the gap's width over the mean width of the gaps beside it
+        in the row (median over its rows; NaN where no gap is beside it): near 1 on a smooth
+        surface, off where a stripe of another surface lies between two of the wall's
     """
 
     a: I64
@@ -166,6 +169,7 @@ class Gaps:
     a_start: I64
     b_order: I64
     b_start: I64
+    spacing_ratio: F64
 
     @property
     def num_gaps(self) -> int:
@@ -192,17 +196,34 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
     o = np.lexsort((u[lk], r))
     lk, r = lk[o], r[o]
     same = r[1:] == r[:-1]
+    # each pair's width, and the widths of the gaps beside it in the row (NaN: none)
+    width = np.where(same, u[lk[1:]] - u[lk[:-1]], np.nan)
+    before = np.r_[np.nan, width[:-1]]
+    after = np.r_[width[1:], np.nan]
     a, b = lk[:-1][same], lk[1:][same]
+    width, before, after = width[same], before[same], after[same]
     keep = (piece[a] != piece[b]) & (u[b] - u[a] < max_gap_px)
-    a, b = a[keep], b[keep]
+    a, b, width, before, after = a[keep], b[keep], width[keep], before[keep], after[keep]
+    n_beside = np.isfinite(before).astype(float) + np.isfinite(after)
+    total = np.nan_to_num(before) + np.nan_to_num(after)
+    beside = np.where(n_beside > 0, total / np.maximum(n_beside, 1.0), np.nan)
     key = piece[a] * (int(piece.max()) + 1) + piece[b]
     o = np.lexsort((v[a], key))
     a, b, key = a[o], b[o], key[o]
+    ratio = (width / beside)[o]
     bounds = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
     n = np.diff(bounds)
     ok = n >= min_rows
     sel = np.repeat(ok, n)
     start = np.r_[0, np.cumsum(n[ok])].astype(np.int64)
+    # per gap, the median ratio of its width to the widths beside it (NaN: none beside)
+    lr = np.log(ratio)
+    med = np.full(len(n), np.nan)
+    for g in np.flatnonzero(ok):
+        x = lr[bounds[g] : bounds[g + 1]]
+        x = x[np.isfinite(x)]
+        if x.size:
+            med[g] = np.median(x)
     return Gaps(
         piece[a[bounds[:-1][ok]]],
         piece[b[bounds[:-1][ok]]],
@@ -210,6 +231,7 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
         start,
         b[sel].astype(np.int64),
         start.copy(),
+        np.exp(med[ok]),
     )
 
 

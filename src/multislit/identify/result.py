@@ -19,6 +19,30 @@ SOURCES = ("left out", "its dots", "its neighbours")
 
 
 @dataclass(frozen=True, eq=False)
+class DotMatches:
+    """Observed dots identified as rays of the dot projector.
+
+    Attributes
+    ----------
+    u, v : (M,) float64, px, the observed dots' centres
+    dot : (M,) int64, the ray (index into the DotProjector's dots) of each
+    window : (M,) int64, the window whose slit and slope predicted it
+    slit : (M,) int64, that window's slit
+    confidence : (M,) float64, that window's confidence
+    """
+
+    u: F64
+    v: F64
+    dot: NDArray[np.int64]
+    window: NDArray[np.int64]
+    slit: NDArray[np.int64]
+    confidence: F64
+
+    def __len__(self) -> int:
+        return len(self.u)
+
+
+@dataclass(frozen=True, eq=False)
 class PieceLabels:
     """Per stripe piece (a segment, or a part of one cut where its slit changes): its label
     and what gave it.
@@ -64,6 +88,8 @@ class Identification:
     pieces : per piece (indexed by ``segment``), its label and where it came from (None for the
         template method)
     method : "geometry" (the dots' geometry) or "template" (the paper's template matching)
+    dots : the observed dots identified as rays of the dot projector by the labelled pieces
+        (geometry only; None for the template method)
     """
 
     u: F64
@@ -80,6 +106,7 @@ class Identification:
     extraction: SlitExtraction | None = None
     pieces: PieceLabels | None = None
     method: str = "template"
+    dots: DotMatches | None = None
 
     @property
     def identified(self) -> NDArray[np.bool_]:

@@ -75,6 +75,7 @@ def write_ply(
     v: ArrayLike | None = None,
     slit: ArrayLike | None = None,
     confidence: ArrayLike | None = None,
+    dot: ArrayLike | None = None,
     binary: bool = True,
     comment: str | Sequence[str] | None = None,
 ) -> None:
@@ -93,6 +94,9 @@ def write_ply(
         Slit number of each point (-1 = unidentified), written as int32.
     confidence : (N,) float, optional
         Per-point confidence, written as float32.
+    dot : (N,) bool, optional
+        True for a point measured on an identified dot rather than on a stripe (written as
+        uchar 1 / 0).
     binary : bool
         ``True`` (default): ``binary_little_endian``; ``False``: ``ascii``.
     comment : str or sequence of str, optional
@@ -141,6 +145,11 @@ def write_ply(
     c = _column(confidence, n, "confidence")
     if c is not None:
         columns.append(("confidence", "f4", c.astype(np.float64)))
+    d = _column(dot, n, "dot")
+    if d is not None:
+        if d.dtype.kind not in "biu" or (n and not np.isin(d, (0, 1)).all()):
+            raise MultislitError("dot must hold True/False (1/0) per point")
+        columns.append(("dot", "u1", d.astype(np.int64)))
 
     comments = [f"multislit {__version__}: x y z mm target frame, u v px"]
     for line in extra:
@@ -152,7 +161,7 @@ def write_ply(
     header = ["ply", f"format {fmt} 1.0"]
     header += [f"comment {c}" for c in comments]
     header.append(f"element vertex {n}")
-    type_names = {"f4": "float", "i4": "int"}
+    type_names = {"f4": "float", "i4": "int", "u1": "uchar"}
     header += [f"property {type_names[t]} {name}" for name, t, _ in columns]
     header.append("end_header")
     head = ("\n".join(header) + "\n").encode("ascii", errors="strict")

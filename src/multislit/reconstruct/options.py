@@ -41,6 +41,11 @@ class RefineOptions:
         background, fitted along the stripe); the slit numbers do not change. Default True.
     min_angle_deg : float, deg, 0 <= x < 90
         Lines of sight meeting a slit plane at a smaller angle are dropped. Default 2.0.
+    dot_points : bool
+        Also measure the dots the identification by the dots' geometry identified: each is
+        where its line of sight crosses its dot's ray (:attr:`ScanResult.dots`), 3D points
+        between the slits; written to the PLY after the stripe points, with ``dot`` = 1.
+        Default False.
 
     Raises
     ------
@@ -50,8 +55,13 @@ class RefineOptions:
 
     refine_centres: bool = True
     min_angle_deg: float = 2.0
+    dot_points: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.dot_points, bool):
+            raise MeasurementError(
+                f"refinement.dot_points must be true or false, got {self.dot_points!r}"
+            )
         if not isinstance(self.refine_centres, bool):
             raise MeasurementError(
                 f"refinement.refine_centres must be true or false, got {self.refine_centres!r}"

@@ -45,6 +45,8 @@ Progress = Callable[[int, int, str], None]
 
 __all__ = [
     "ScanResult",
+    "DotPoints",
+    "measure_dots",
     "rig_of",
     "scan_image",
     "scan_image_for_holes",
@@ -57,9 +59,65 @@ __all__ = [
 #: The calibration file name inside a capture folder (written by ``multislit calibrate``).
 CALIBRATION_FILE = "calibration.json"
 
+#: A dot whose line of sight passes farther than this many pixels' width (at its range) from
+#: its ray is left out of the dot points.
+_MAX_RAY_GAP_PX = 1.5
+
 #: A scan whose identification labels fewer of its stripe centres than this fraction is not
 #: taken as a scan of the rig's slits (its points are dropped, with a message).
 _MIN_IDENTIFIED_FRACTION = 0.2
+
+
+@dataclass(frozen=True, eq=False)
+class DotPoints:
+    """The identified dots measured: each where its line of sight crosses its dot's ray.
+
+    Attributes
+    ----------
+    points : (M, 3) float64, mm, target frame
+    u, v : (M,) float64, px, the dots' centres
+    slit : (M,) int64, the slit of the stripe piece whose dots they are
+    confidence : (M,) float64, that piece's confidence
+    ray_gap_mm : (M,) float64, mm, how far the line of sight passes from the dot's ray
+    """
+
+    points: F64
+    u: F64
+    v: F64
+    slit: NDArray[np.int64]
+    confidence: F64
+    ray_gap_mm: F64
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def measure_dots(ident: Identification, calibration: Calibration, rig: RigGeometry) -> DotPoints:
+    """The 3D points of the dots an identification by the dots' geometry identified: the
+    midpoint of the shortest segment between each dot's line of sight and its ray (a dot whose
+    two lines pass farther apart than :data:`_MAX_RAY_GAP_PX` px's width at its range is left
+    out: a wrong pairing)."""
+    d = ident.dots
+    if d is None or len(d) == 0:
+        e = np.zeros(0)
+        return DotPoints(np.zeros((0, 3)), e, e.copy(), np.zeros(0, np.int64), e.copy(), e.copy())
+    cam = calibration.camera
+    o, r = cam.rays(np.stack([d.u, d.v], axis=1))
+    src = rig.dots.source
+    dd = rig.dots.directions[d.dot]
+    w0 = o - src
+    b = np.einsum("ij,ij->i", r, dd)
+    e1 = np.einsum("ij,ij->i", r, w0)
+    e2 = np.einsum("ij,ij->i", dd, w0)
+    den = np.maximum(1.0 - b * b, 1e-12)
+    s1 = (b * e2 - e1) / den
+    s2 = (e2 - b * e1) / den
+    p1 = o + s1[:, None] * r
+    p2 = src + s2[:, None] * dd
+    gap = np.linalg.norm(p1 - p2, axis=1)
+    f = float(np.sqrt(rig.camera.fx * rig.camera.fy))
+    ok = (s1 > 0) & (gap <= _MAX_RAY_GAP_PX * s1 / f)
+    return DotPoints(0.5 * (p1 + p2)[ok], d.u[ok], d.v[ok], d.slit[ok], d.confidence[ok], gap[ok])
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -87,6 +145,8 @@ class ScanResult(Summarised):
     image_size : (W, H) px
     options : the :class:`~multislit.reconstruct.ScanOptions` the scan used (None: read from
         a PLY)
+    dots : the identified dots measured (:class:`DotPoints`; with the refinement's
+        ``dot_points``), or None
 
     The per-point arrays ``v``, ``slit``, ``confidence``, ``peak``, ``width`` and ``segment``
     and the counts are properties read from :attr:`identification`.
@@ -102,6 +162,7 @@ class ScanResult(Summarised):
     seconds: float = 0.0
     image_size: tuple[int, int] = (0, 0)
     options: ScanOptions | None = None
+    dots: DotPoints | None = None
 
     @property
     def v(self) -> F64:
@@ -173,12 +234,27 @@ class ScanResult(Summarised):
         """Segments dropped by the identification, all reasons."""
         return int(sum(self.dropped.values()))
 
+    @property
+    def sources(self) -> dict[str, int]:
+        """Pieces per source of their label (the identification by the dots' geometry: left
+        out, by its dots, by its neighbours); empty for the template method."""
+        p = self.identification.pieces
+        return {} if p is None else p.counts()
+
     def summary(self) -> str:
-        """One line: points, slits found, segments, dropped segments, time."""
+        """One line: points (and dot points), slits found, segments identified and by what,
+        dropped segments, time."""
         reasons = ", ".join(f"{k} {v}" for k, v in self.dropped.items() if v)
+        src = self.sources
+        by = (
+            f" ({src['its dots']} by their dots, {src['its neighbours']} by their neighbours)"
+            if src
+            else ""
+        )
+        dots = f" + {len(self.dots)} dot points" if self.dots is not None else ""
         line = (
-            f"{self.name or 'image'}: {self.num_points} points, {self.num_slits_found} slits, "
-            f"{self.num_segments_identified}/{self.num_segments} segments identified, "
+            f"{self.name or 'image'}: {self.num_points} points{dots}, {self.num_slits_found} "
+            f"slits, {self.num_segments_identified}/{self.num_segments} segments identified{by}, "
             f"{self.num_dropped} dropped{f' ({reasons})' if reasons else ''}, "
             f"{self.seconds:.2f} s"
         )
@@ -195,7 +271,9 @@ class ScanResult(Summarised):
             "slits_found": self.num_slits_found,
             "segments": self.num_segments,
             "segments_identified": self.num_segments_identified,
+            "identified_by": self.sources,
             "dropped": {k: int(v) for k, v in self.dropped.items()},
+            "dot_points": len(self.dots) if self.dots is not None else None,
             "invalid": self.num_invalid,
             "refined": self.num_refined,
             "seconds": round(float(self.seconds), 4),
@@ -263,13 +341,27 @@ class ScanResult(Summarised):
         lines = [] if comment is None else [comment]
         if self.options is not None:
             lines.append("options " + json.dumps(self.options.to_dict(), separators=(",", ":")))
+        if self.dots is None:
+            write_ply(
+                p,
+                self.points,
+                u=self.u,
+                v=self.v,
+                slit=self.slit,
+                confidence=self.confidence,
+                binary=True,
+                comment=lines,
+            )
+            return p
+        d = self.dots
         write_ply(
             p,
-            self.points,
-            u=self.u,
-            v=self.v,
-            slit=self.slit,
-            confidence=self.confidence,
+            np.concatenate([self.points, d.points]),
+            u=np.r_[self.u, d.u],
+            v=np.r_[self.v, d.v],
+            slit=np.r_[self.slit, d.slit],
+            confidence=np.r_[self.confidence, d.confidence],
+            dot=np.r_[np.zeros(len(self.points), bool), np.ones(len(d), bool)],
             binary=True,
             comment=lines,
         )
@@ -422,6 +514,9 @@ def _scan(
         calibration.camera, planes, uv, ident.slit[m], min_angle_deg=opts.refinement.min_angle_deg
     )
     idx = np.flatnonzero(m)[valid]
+    dots = None
+    if opts.refinement.dot_points and rig is not None and not problem:
+        dots = measure_dots(ident, calibration, rig)
     seconds = time.perf_counter() - t0
     return ScanResult(
         name=name,
@@ -434,6 +529,7 @@ def _scan(
         seconds=seconds,
         image_size=size,
         options=opts,
+        dots=dots,
     )
 
 
