@@ -47,6 +47,8 @@ _WINDOW_ROWS = 24
 #: segment, and loses when it carries another (where the segment crosses an object's edge).
 _CHAIN = 4.0
 _CHAIN_CHANGE = 1.5
+#: Rows left out on either side of a change of slit between two windows of a segment.
+_JUNCTION_ROWS = 8
 #: A segment is cut where lines fitted to this many points before and after a point put the
 #: stripe more than this many px apart (a step where two slits' stripes meet).
 _KINK_ROWS = 6
@@ -187,6 +189,10 @@ def identify_geometry(
     has = window >= 0
     slit[has] = label[window[has]]
     conf[has] = np.where(slit[has] >= 0, lab.confidence[window[has]], 0.0)
+    # where a segment's slit changes between two windows, the change lies somewhere in them:
+    # the rows next to their boundary are left out
+    slit[_near_changes(ex.v, win, label)] = -1
+    conf[slit < 0] = 0.0
     return Identification(
         ex.u,
         ex.v,
@@ -220,6 +226,23 @@ def _calibrated(scores: F64) -> F64:
     top = rest.max()
     bias = top + math.log(np.mean(np.exp(rest - top)))
     return scores - max(bias, 0.0)
+
+
+def _near_changes(v: F64, win: Windows, label: I64) -> NDArray[np.bool_]:
+    """(K,) bool: the points within :data:`_JUNCTION_ROWS` rows of a boundary between two
+    windows of one segment whose labels differ (both labelled)."""
+    out = np.zeros(len(v), bool)
+    nxt = np.flatnonzero(
+        (win.segment[1:] == win.segment[:-1])
+        & (label[1:] != label[:-1])
+        & (label[1:] >= 0)
+        & (label[:-1] >= 0)
+    )
+    for w in nxt:  # the boundary: between window w's last point and w + 1's first
+        a = win.order[win.start[w] : win.start[w + 2]]
+        mid = 0.5 * (v[win.order[win.start[w + 1] - 1]] + v[win.order[win.start[w + 1]]])
+        out[a[np.abs(v[a] - mid) <= _JUNCTION_ROWS]] = True
+    return out
 
 
 def _continuations(ex: SlitExtraction, segment: I64, win: Windows) -> tuple[I64, I64, F64, F64]:
