@@ -388,10 +388,20 @@ def _auto_projector(
     labels: tuple[ArrayLike, ArrayLike, ArrayLike] | None,
     reference: ReferenceSet | None,
 ) -> tuple[SlitPointSet, ProjectorFit | None, str | None]:
-    """Automatic points and their projector fit, or why the fit cannot be trusted."""
+    """Automatic points and their projector fit, or why the fit cannot be trusted (also when
+    the stripes cannot be labelled: the labels' dots need the prepared reference images)."""
     if labels is None:
         img = read_capture_image(cap, cap.slits_image, "slit image")
-        lab = label_by_order(img, cap, camera=cam.from_markers, reference=reference)
+        try:
+            lab = label_by_order(img, cap, camera=cam.from_markers, reference=reference)
+        except ReferenceImageError as exc:
+            e3, e2, ei = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.intp)
+            empty = SlitPointSet(e3, ei, e2, ei, "auto", (("labelled", 0),))
+            return (
+                empty,
+                None,
+                f"the stripes cannot be labelled without the reference images ({exc})",
+            )
         labels = (lab.u, lab.v, lab.slit)
     pts = auto_slit_points(cap, cam.refined, labels)
     try:
