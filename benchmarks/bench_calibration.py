@@ -209,7 +209,15 @@ def main() -> None:
         "--default", action="store_true", help="with --zoo: also the default rig (OUT/default)"
     )
     ap.add_argument("--write", action="store_true", help="record the table in RESULTS.md")
+    ap.add_argument(
+        "--no-folds", action="store_true", help="leave the target's folds out of the adjustment"
+    )
     args = ap.parse_args()
+    if args.no_folds:  # benchmark-only switch: the adjustment without the folds' observations
+        import multislit.calibrate.pipeline as pipeline
+
+        real = pipeline.fold_points
+        pipeline.fold_points = lambda image, camera, faces: real(image, camera, ())
     source = "hand" if args.hand else "auto"
     rows = []
     if args.zoo:

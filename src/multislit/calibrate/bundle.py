@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -331,22 +331,30 @@ def plane_lines(pa: F64, pb: F64) -> tuple[F64, F64]:
 def line_residuals(cam: F64, P: F64, D: F64, uv: F64) -> F64:
     """Signed image distance (N,) px from each observation ``uv`` (N, 2) to the image of its
     3D line (points ``P``, directions ``D``, (N, 3), world): the line's point imaged in the
-    observation's row, and the distance across the line's image there.
+    observation's row (its column, where the line's image runs more along the rows than
+    across them), and the distance across the line's image there.
     """
     R, t = _rotation_translation(cam)
     Pc, Dc = P @ R.T + t, D @ R.T
     u, v = uv[:, 0], uv[:, 1]
     xd, yd = (u - cam[2]) / cam[0], (v - cam[3]) / cam[1]
     r2 = xd * xd + yd * yd
-    y0 = yd / (1 + r2 * (cam[10] + r2 * (cam[11] + r2 * cam[14])))
+    rad = 1 + r2 * (cam[10] + r2 * (cam[11] + r2 * cam[14]))
+    x0, y0 = xd / rad, yd / rad
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = (y0 * Pc[:, 2] - Pc[:, 1]) / (Dc[:, 1] - y0 * Dc[:, 2])
+        # the line's image direction at its point nearest the world's origin (the target)
+        _, _, du0, dv0 = _line_pixel(cam, Pc, Dc, np.zeros(len(P)))
+        by_col = np.abs(du0) > np.abs(dv0)
+        s_row = (y0 * Pc[:, 2] - Pc[:, 1]) / (Dc[:, 1] - y0 * Dc[:, 2])
+        s_col = (x0 * Pc[:, 2] - Pc[:, 0]) / (Dc[:, 0] - x0 * Dc[:, 2])
+        s = np.where(by_col, s_col, s_row)
+        target = np.where(by_col, u, v)
         for _ in range(_LINE_NEWTON_STEPS):
-            _, vp, _, dv = _line_pixel(cam, Pc, Dc, s)
-            s = s - (vp - v) / dv
+            up, vp, du, dv = _line_pixel(cam, Pc, Dc, s)
+            s = s - np.where(by_col, (up - target) / du, (vp - target) / dv)
         up, vp, du, dv = _line_pixel(cam, Pc, Dc, s)
         e = ((up - u) * dv - (vp - v) * du) / np.hypot(du, dv)
-    return e * np.sign(dv)
+    return e * np.where(by_col, -np.sign(du), np.sign(dv))
 
 
 # --------------------------------------------------------------------------- observations
@@ -1031,6 +1039,10 @@ class CaptureObservations:
     board_uv : per reference board, (N_b, 2) float64 px, stripe centres
     board_slit : per reference board, (N_b,) int
     names : image names: markers image, slits image, hand readings, then the boards
+    fold_uv : (E, 2) float64, px, points of the target's folds in the markers image (may be
+        empty; :func:`~multislit.calibrate.edges.fold_points`)
+    fold_line : (E,) int, the fold of each point (index into ``fold_P``, ``fold_D``)
+    fold_P, fold_D : (L, 3) float64, each fold's 3D line (a point, mm; a unit direction)
     """
 
     image_size: tuple[int, int]
@@ -1046,6 +1058,10 @@ class CaptureObservations:
     board_uv: tuple[F64, ...]
     board_slit: tuple[NDArray[np.intp], ...]
     names: tuple[str, ...]
+    fold_uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    fold_line: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, np.intp))
+    fold_P: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    fold_D: F64 = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def thin_lines(
@@ -1120,6 +1136,8 @@ def _capture_blocks(
 ) -> list[ObservationBlock]:
     """The observation blocks of a capture (markers, target stripes or hand readings, boards)."""
     blocks = [marker_block(obs.marker_xyz, obs.marker_uv, 0)]
+    if len(obs.fold_uv):
+        blocks.append(_fold_block(obs))
     t = slit_item[obs.target_slit] >= 0 if len(obs.target_slit) else np.zeros(0, bool)
     if np.any(t):
         sel = np.flatnonzero(t)
@@ -1158,6 +1176,19 @@ def _capture_blocks(
             )
         )  # fmt: skip
     return blocks
+
+
+def _fold_block(obs: CaptureObservations) -> ObservationBlock:
+    """The target's folds seen in the markers image: known 3D lines, residuals across them."""
+    P, D, uv = obs.fold_P[obs.fold_line], obs.fold_D[obs.fold_line], obs.fold_uv
+
+    def residual(g: Geometry, rows: NDArray[np.intp]) -> F64:
+        return line_residuals(g["camera"], P[rows], D[rows], uv[rows])
+
+    image = np.zeros(len(uv), np.intp)
+    return ObservationBlock(
+        "target folds", "px", residual, {"camera": None}, image, uv, obs.fold_line.copy()
+    )
 
 
 def _surfaces_seen(obs: CaptureObservations, k: int, boards_ok: NDArray[np.bool_]) -> NDArray:

@@ -51,6 +51,7 @@ from multislit.calibrate.bundle import (
 )
 from multislit.calibrate.camera import rms
 from multislit.calibrate.capture_camera import CameraCalibration, camera_from_capture
+from multislit.calibrate.edges import fold_points
 from multislit.calibrate.model import Calibration
 from multislit.calibrate.projector import ProjectorFit, auto_fit_problem, fit_projector
 from multislit.calibrate.slit_labels import label_by_order
@@ -294,7 +295,8 @@ def _bundle(
     stripes: ReferenceStripes | None,
 ) -> CaptureBundle:
     """The bundle adjustment (:func:`~multislit.calibrate.bundle.adjust_capture`) of the
-    capture's markers, stripes on the target (or hand readings) and on the reference boards."""
+    capture's markers and the target's folds (:func:`~multislit.calibrate.edges.fold_points`),
+    the stripes on the target (or hand readings) and on the reference boards."""
     det = cam.detection
     sel = [det.ids.index(i) for i in cam.residuals.ids]
     faces = _marker_faces(cap)
@@ -308,6 +310,7 @@ def _bundle(
         hand = hand_slit_points(cap)
         r_xyz, r_slit, r_uv = hand.xyz, hand.slit, hand.uv
     rel = [_relative(cap, p) for p in (cap.markers_image, cap.slits_image)]
+    folds = fold_points(cap.image(cap.markers_image), cam.refined, cap.target.faces)
     obs = CaptureObservations(
         image_size=cap.image_size,
         marker_xyz=cap.target.marker_xyz[sel],
@@ -321,6 +324,10 @@ def _bundle(
         readings_uv=r_uv,
         board_uv=tuple(stripes.uv) if stripes is not None else (),
         board_slit=tuple(stripes.slit) if stripes is not None else (),
+        fold_uv=folds.uv,
+        fold_line=folds.fold,
+        fold_P=folds.P,
+        fold_D=folds.D,
         names=(
             *rel,
             "target.json (slit_points)",
