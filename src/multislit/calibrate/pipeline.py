@@ -170,7 +170,7 @@ class CalibrationResult:
                 "planes": (
                     self.bundle.board_planes if self.bundle is not None else self.boards.planes
                 ).tolist(),
-                "posing_rms_mm": self.boards.rms_mm.tolist(),
+                "rms_mm": self.boards.rms_mm.tolist(),
             },
             "projector_matrix": {
                 "median_rms_mm": float(np.nanmedian(self.projector.projector_rms_mm))
@@ -247,9 +247,10 @@ def calibrate_capture(
         pts = hand_slit_points(cap)
         fit = fit_projector(pts, cap.num_slits)
     boards, origin = None, plane_origins(fit, pts)
-    target_pts, stripes = pts, None
-    if reference is not None:
-        pts, fit, boards, origin, stripes = _add_boards(cap, cam, pts, fit, notes, reference)
+    target_pts = pts
+    stripes = _board_stripes(cap, reference, notes) if references else None
+    if stripes is not None:
+        pts, fit, boards, origin = _add_boards(cap, cam, pts, fit, notes, stripes)
     if used_source == "hand":
         bad = _hand_reading_problem(hand_slit_points(cap), fit.slit_planes.planes)
         if bad:
@@ -331,11 +332,17 @@ def _bundle(
         names=(
             *rel,
             "target.json (slit_points)",
-            *([_relative(cap, p) for p in cap.references] if stripes is not None else []),
+            *(_reference_paths(cap, stripes.names) if stripes is not None else []),
         ),
     )
     board_planes = boards.planes if boards is not None and stripes is not None else e3[:, :0]
     return adjust_capture(obs, cam.refined, fit.slit_planes.planes, board_planes.reshape(-1, 4))
+
+
+def _reference_paths(cap: Capture, stems: tuple[str, ...]) -> list[str]:
+    """The reference images named ``stems`` (file stems), relative to the capture folder."""
+    by_stem = {p.stem: p for p in cap.references}
+    return [_relative(cap, by_stem[s]) for s in stems]
 
 
 def _relative(cap: Capture, path: Path) -> str:
@@ -385,8 +392,27 @@ def _reference(cap: Capture, notes: list[str]) -> ReferenceSet | None:
     try:
         return capture_reference(cap)
     except ReferenceImageError as exc:
+        notes.append(
+            f"the reference set cannot be prepared ({exc}); the boards' stripes are numbered "
+            "image by image"
+        )
+        return None
+
+
+def _board_stripes(
+    cap: Capture, reference: ReferenceSet | None, notes: list[str]
+) -> ReferenceStripes | None:
+    """The numbered stripe centres of the reference boards (:func:`reference_stripes`; without
+    a prepared reference set, each image's own curves), or None with a note."""
+    if not cap.references:
+        return None
+    try:
+        stripes = reference_stripes(cap, reference)
+    except ReferenceImageError as exc:
         notes.append(f"reference boards not used ({exc}); slit planes from the target alone")
         return None
+    notes += list(stripes.notes)
+    return stripes
 
 
 def _auto_projector(
@@ -513,14 +539,13 @@ def _add_boards(
     pts: SlitPointSet,
     fit: ProjectorFit,
     notes: list[str],
-    reference: ReferenceSet,
-) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...], ReferenceStripes]:
+    stripes: ReferenceStripes,
+) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...]]:
     """The fit with the reference boards' points (:func:`fit_with_boards`), and each plane's origin.
 
     Appends to ``notes``; raises :class:`CalibrationError` naming the slits the references show
     that end without a plane.
     """
-    stripes = reference_stripes(cap, reference)
     camera = cam.refined if cam.refined is not None else cam.dlt
     n_faces = len(cap.target.faces) if cap.target is not None else 0
     bf = fit_with_boards(pts, fit, stripes, camera, n_faces)
@@ -546,7 +571,7 @@ def _add_boards(
             + "".join(f"; {n}" for n in bf.boards.notes)
             + "; check the reference images (every slit on every board) and the target image"
         )
-    return bf.points, fit, bf.boards, tuple(origin), stripes
+    return bf.points, fit, bf.boards, tuple(origin)
 
 
 def _fit_notes(fit: ProjectorFit) -> list[str]:
