@@ -1014,8 +1014,8 @@ MAX_OUTLIER_SHARE = 0.3
 #: by more than this many times the predicted 3D error of triangulated points (and their
 #: chi-square decrease is significant).
 AXIS_MISFIT = 3.0
-#: Most stripe centres per slit and surface (evenly along the stripe): neighbouring centres'
-#: errors are correlated, so more add time, not information.
+#: Most observations per slit and surface: consecutive stripe centres are averaged in bins
+#: (:func:`bin_lines`), so every centre counts and the adjustment's size stays bounded.
 MAX_PER_LINE = 60
 #: Least stripe centres of a slit on a surface for them to count.
 MIN_PER_LINE = 12
@@ -1064,22 +1064,35 @@ class CaptureObservations:
     fold_D: F64 = field(default_factory=lambda: np.zeros((0, 3)))
 
 
-def thin_lines(
-    key: NDArray[np.intp], order: F64, most: int = MAX_PER_LINE, least: int = MIN_PER_LINE
-) -> NDArray[np.bool_]:
-    """(N,) bool: at most ``most`` rows per ``key`` (evenly by ``order``), keys with fewer than
-    ``least`` rows left out."""
-    keep = np.zeros(len(key), bool)
-    idx = np.lexsort((order, key))
+def bin_lines(
+    key: NDArray[np.intp], uv: F64, most: int = MAX_PER_LINE, least: int = MIN_PER_LINE
+) -> tuple[F64, NDArray[np.intp]]:
+    """Stripe centres averaged in bins of consecutive rows: at most ``most`` per ``key`` (a
+    stripe on one surface), every centre in one bin; keys with fewer than ``least`` centres
+    are left out. Over a few rows a stripe's image is straight, so a bin's mean lies on it
+    with the noise of its centres averaged.
+
+    Returns the bins' mean positions (B, 2) px and the key of each bin (B,).
+    """
+    if not len(key):
+        return np.zeros((0, 2)), np.zeros(0, np.intp)
+    idx = np.lexsort((uv[:, 1], key))
     ks = key[idx]
     starts = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    ends = np.r_[starts[1:], len(ks)]
-    for a, b in zip(starts, ends, strict=True):
-        if b - a < least:
-            continue
-        take = np.linspace(a, b - 1, min(most, b - a)).round().astype(int)
-        keep[idx[take]] = True
-    return keep
+    counts = np.diff(np.r_[starts, len(ks)])
+    run = np.repeat(np.arange(len(starts)), counts)
+    pos = np.arange(len(ks)) - starts[run]  # rank of each centre in its stripe
+    size = np.ceil(counts / most).astype(int)  # centres per bin, per stripe
+    ok = counts[run] >= least
+    bin_id = run * (int(counts.max()) + 1) + pos // size[run]
+    _, inv = np.unique(bin_id[ok], return_inverse=True)
+    n = np.bincount(inv).astype(float)
+    mean = np.stack(
+        [np.bincount(inv, uv[idx][ok, 0]) / n, np.bincount(inv, uv[idx][ok, 1]) / n], axis=1
+    )
+    first = np.zeros(len(n), np.intp)
+    first[inv[::-1]] = np.arange(len(inv))[::-1]
+    return mean, ks[ok][first]
 
 
 @dataclass(frozen=True, eq=False)
@@ -1140,16 +1153,15 @@ def _capture_blocks(
         blocks.append(_fold_block(obs))
     t = slit_item[obs.target_slit] >= 0 if len(obs.target_slit) else np.zeros(0, bool)
     if np.any(t):
-        sel = np.flatnonzero(t)
-        keep = thin_lines(obs.target_slit[sel] * 64 + obs.target_face[sel], obs.target_uv[sel, 1])
-        sel = sel[keep]
-        blocks.append(
-            stripe_block(
-                "target stripes", obs.target_uv[sel], slit_item[obs.target_slit[sel]],
-                obs.target_face[sel], np.full(len(sel), 1, np.intp), slit_deps,
-                fixed_planes=obs.faces,
-            )
-        )  # fmt: skip
+        key = obs.target_slit[t] * 64 + obs.target_face[t]
+        uv, key = bin_lines(key, obs.target_uv[t])
+        if len(uv):
+            blocks.append(
+                stripe_block(
+                    "target stripes", uv, slit_item[key // 64], key % 64,
+                    np.full(len(uv), 1, np.intp), slit_deps, fixed_planes=obs.faces,
+                )
+            )  # fmt: skip
     h = slit_item[obs.readings_slit] >= 0 if len(obs.readings_slit) else np.zeros(0, bool)
     if np.any(h):
         blocks.append(
@@ -1163,10 +1175,10 @@ def _capture_blocks(
         if board_item[b] < 0 or not len(s):
             continue
         ok = slit_item[s] >= 0
-        ok[ok] = thin_lines(s[ok], uv[ok, 1])
-        uv_l.append(uv[ok])
-        s_l.append(slit_item[s[ok]])
-        b_l.append(np.full(int(ok.sum()), b, np.intp))
+        buv, bs = bin_lines(s[ok], uv[ok])
+        uv_l.append(buv)
+        s_l.append(slit_item[bs])
+        b_l.append(np.full(len(bs), b, np.intp))
     if uv_l:
         bb = np.concatenate(b_l)
         blocks.append(
@@ -1663,7 +1675,7 @@ __all__ = [
     "CaptureObservations",
     "adjust_capture",
     "bundle_report",
-    "thin_lines",
+    "bin_lines",
     "REGIONS",
     "AxisParams",
     "BlockStats",
