@@ -214,8 +214,11 @@ def test_synthetic_capture_recovers_the_truth(small_rig, synthetic):
         z = (res.geometry["camera"][i] - tv[i]) / res.std_error(f"camera.{name}")
         assert abs(z) < 4.5, (name, z)
     stats = res.per_source()
-    assert abs(stats["markers"]["sigma"] / 0.02 - 1) < 0.3
-    assert abs(stats["board stripes"]["sigma"] / 0.05 - 1) < 0.15
+    assert abs(stats["markers"]["sigma"] / 0.02 - 1) < 0.4  # 96 residuals: a rough estimate
+    # the boards' centres are averaged in bins of consecutive rows: noise 0.05 / sqrt(bin size)
+    sizes = [np.ceil(np.bincount(s)[np.bincount(s) > 0] / B.MAX_PER_LINE) for s in obs.board_slit]
+    expected = 0.05 / np.sqrt(np.mean(np.concatenate(sizes)))
+    assert abs(stats["board stripes"]["sigma"] / expected - 1) < 0.2, expected
     assert set(stats["board stripes"]["regions"]) == set(B.REGIONS)
     assert not bundle.problems
 

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 import scipy.stats
 from numpy.typing import NDArray
+from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
 
 from multislit.calibrate.slit_planes import common_line
@@ -65,8 +66,10 @@ CAMERA_PARAMS = ("fx", "fy", "cx", "cy", "r1", "r2", "r3", "t1", "t2", "t3", "k1
 OUTLIER_SIGMA = 5.0
 #: The soft-L1 loss turns from quadratic to linear at this many noise levels.
 _LOSS_SCALE = 3.0
-#: Most rounds of (fit, noise estimate, outliers).
-_MAX_ROUNDS = 4
+#: Most rounds of (fit, noise estimate, outliers, robust weights).
+_MAX_ROUNDS = 6
+#: Most rounds (of robust weights) under a fixed noise model.
+_FIXED_ROUNDS = 3
 #: The score tests' level: the chance that a chi-square decrease this large arises from noise
 #: alone (three standard deviations of a Gaussian, two-sided).
 _TEST_LEVEL = 0.0027
@@ -471,11 +474,14 @@ class _Problem:
         obs: Sequence[ObservationBlock],
         rows: Sequence[NDArray[np.intp]],
         sigma: Sequence[float],
+        weights: F64 | None = None,
     ) -> None:
         self.model, self.obs, self.rows, self.sigma = model, obs, rows, sigma
         self.layout = Layout(model.blocks)
         self.start = np.cumsum([0] + [len(r) for r in rows])
         self._cache: tuple[F64, list[F64]] | None = None
+        #: (m,) each row's weight (the square root of its robust loss's IRLS weight)
+        self.weights = np.ones(int(self.start[-1])) if weights is None else weights
 
     def block_residuals(self, x: F64) -> list[F64]:
         if self._cache is not None and np.array_equal(self._cache[0], x):
@@ -489,7 +495,14 @@ class _Problem:
 
     def fun(self, x: F64) -> F64:
         r = np.concatenate(self.block_residuals(x))
-        return np.where(np.isfinite(r), r, 1e6)
+        return np.where(np.isfinite(r), r, 1e6) * self.weights
+
+    def robust_weights(self, x: F64) -> F64:
+        """(m,) the square roots of the soft-L1 loss's IRLS weights at ``x``: 1 / (1 + z)^(1/4)
+        with z the squared residual over the loss's scale (:data:`_LOSS_SCALE` noise levels)."""
+        r = np.concatenate(self.block_residuals(x))
+        z = np.where(np.isfinite(r), r / _LOSS_SCALE, 1e3) ** 2
+        return (1.0 + z) ** -0.25
 
     def jac(self, x: F64) -> F64:
         """(m, P) forward differences: each column of a shared block alone, each column of an
@@ -520,7 +533,7 @@ class _Problem:
                         J[at[keep], self.layout.column(name, it[keep], c_free)] = (
                             d[keep] / h[it[keep]]
                         )
-        return np.where(np.isfinite(J), J, 0.0)
+        return np.where(np.isfinite(J), J, 0.0) * self.weights[:, None]
 
 
 # --------------------------------------------------------------------------- result
@@ -802,16 +815,24 @@ def adjust(
         )
     sol = None
     rounds = 0
+    weights = None
     while rounds < _MAX_ROUNDS:
         rounds += 1
-        prob = _Problem(model, obs, [np.flatnonzero(k) for k in noise.kept], noise.scale())
+        prob = _Problem(model, obs, [np.flatnonzero(k) for k in noise.kept], noise.scale(), weights)
+        # MINPACK's Levenberg-Marquardt (its QR is single-threaded: fast on a busy machine);
+        # the robust loss by reweighting, each round's weights from the last round's residuals
         sol = least_squares(
-            prob.fun, x, jac=prob.jac, loss="soft_l1", f_scale=_LOSS_SCALE, x_scale="jac",
-            tr_solver="exact", max_nfev=max_nfev, xtol=1e-8, ftol=1e-8, gtol=1e-8,
+            prob.fun, x, jac=prob.jac, method="lm", x_scale="jac", max_nfev=max_nfev,
+            xtol=1e-8, ftol=1e-8, gtol=1e-8,
         )  # fmt: skip
         x = sol.x
+        new_w = prob.robust_weights(x)
+        settled = weights is not None and float(np.max(np.abs(new_w - weights))) < 0.02
         if fixed:
-            break
+            weights = new_w
+            if settled or rounds >= _FIXED_ROUNDS:
+                break
+            continue
         g = model.derive(layout.unpack(x))
         res = [ob.residual(g, r) for ob, r in zip(obs, rows, strict=True)]
         sigma = [
@@ -829,10 +850,14 @@ def adjust(
         same = all(np.array_equal(a, b) for a, b in zip(noise.kept, new.kept, strict=True))
         steady = all(abs(a / b - 1) < 0.05 for a, b in zip(noise.scale(), new.scale(), strict=True))
         noise = new
-        if same and steady:
+        # the next round's weights, on its rows and scales
+        nxt = _Problem(model, obs, [np.flatnonzero(k) for k in noise.kept], noise.scale())
+        weights = nxt.robust_weights(x)
+        if same and steady and settled:
             break
     assert sol is not None
     prob = _Problem(model, obs, [np.flatnonzero(k) for k in noise.kept], noise.scale())
+    prob.weights = prob.robust_weights(x)
     cov, se = _covariance(prob, x)
     g = model.derive(layout.unpack(x))
     stats = []
@@ -1017,6 +1042,10 @@ AXIS_MISFIT = 3.0
 #: Most observations per slit and surface: consecutive stripe centres are averaged in bins
 #: (:func:`bin_lines`), so every centre counts and the adjustment's size stays bounded.
 MAX_PER_LINE = 60
+#: Before binning, a centre further than this (px, across the stripe) from the running median
+#: of its stripe over this many centres is left out (another slit is a stripe spacing away).
+_BIN_MAX_OFF_PX = 2.0
+_BIN_MEDIAN_ROWS = 9
 #: Least stripe centres of a slit on a surface for them to count.
 MIN_PER_LINE = 12
 
@@ -1072,6 +1101,10 @@ def bin_lines(
     are left out. Over a few rows a stripe's image is straight, so a bin's mean lies on it
     with the noise of its centres averaged.
 
+    Centres more than :data:`_BIN_MAX_OFF_PX` from the running median of their stripe (over
+    :data:`_BIN_MEDIAN_ROWS` centres) are left out first: a scattered centre of another slit
+    under this one's number would pull its bin's mean.
+
     Returns the bins' mean positions (B, 2) px and the key of each bin (B,).
     """
     if not len(key):
@@ -1084,6 +1117,12 @@ def bin_lines(
     pos = np.arange(len(ks)) - starts[run]  # rank of each centre in its stripe
     size = np.ceil(counts / most).astype(int)  # centres per bin, per stripe
     ok = counts[run] >= least
+    # a centre far from its stripe's running median (another slit's, under this one's
+    # number) would pull its bin's mean: it is left out
+    u = uv[idx, 0]
+    for a, c in zip(starts, counts, strict=True):
+        med = median_filter(u[a : a + c], size=_BIN_MEDIAN_ROWS, mode="nearest")
+        ok[a : a + c] &= np.abs(u[a : a + c] - med) <= _BIN_MAX_OFF_PX
     bin_id = run * (int(counts.max()) + 1) + pos // size[run]
     _, inv = np.unique(bin_id[ok], return_inverse=True)
     n = np.bincount(inv).astype(float)
@@ -1206,7 +1245,8 @@ def _fold_block(obs: CaptureObservations) -> ObservationBlock:
 def _surfaces_seen(obs: CaptureObservations, k: int, boards_ok: NDArray[np.bool_]) -> NDArray:
     """(K,) int, per slit: the surfaces (target faces, posed boards) it is seen on with at
     least :data:`MIN_PER_LINE` centres, plus 2 if its hand readings span a plane (>= 3 points
-    off one line). A plane needs 2."""
+    off one line), 1 if they lie along one line. A free plane needs 2, one through the common
+    axis 1."""
     n = np.zeros(k, int)
     if len(obs.target_slit):
         pairs = obs.target_slit * 64 + obs.target_face
@@ -1219,6 +1259,8 @@ def _surfaces_seen(obs: CaptureObservations, k: int, boards_ok: NDArray[np.bool_
         X = obs.readings_xyz[obs.readings_slit == j]
         if len(X) >= 3 and np.linalg.svd(X - X.mean(axis=0), compute_uv=False)[1] > 1e-3:
             n[j] += 2
+        elif len(X) >= 2:
+            n[j] += 1
     return n
 
 
@@ -1384,7 +1426,12 @@ def adjust_capture(
     """
     k = len(slit_planes)
     bv = np.all(np.isfinite(board_planes), axis=1)
-    sv = np.all(np.isfinite(slit_planes), axis=1) & (_surfaces_seen(obs, k, bv) >= 2)
+    finite = np.all(np.isfinite(slit_planes), axis=1)
+    seen = _surfaces_seen(obs, k, bv)
+    # through a common axis a slit seen along one line has its plane (the axis and the line);
+    # free, it needs two
+    axis_model = int(np.sum(finite & (seen >= 2))) >= 3
+    sv = finite & (seen >= (1 if axis_model else 2))
     slit_item = np.full(k, -1, np.intp)
     slit_item[sv] = np.arange(int(sv.sum()))
     board_item = np.full(len(board_planes), -1, np.intp)
@@ -1393,7 +1440,7 @@ def adjust_capture(
     start = slit_planes[sv]
     cam0 = replace(camera, dist=camera.dist[:4])  # k3 = 0 unless the data ask for it
     tests: dict[str, dict[str, float]] = {}
-    kind = "common axis" if int(sv.sum()) >= 3 else "free"
+    kind = "common axis" if axis_model else "free"
     fit = _fit_capture(obs, kind, cam0, start, bstart, slit_item, board_item, False)
     if fit_k3:
         # k3: the chi-square decrease the fit with k3 free would bring (a score test)

@@ -305,7 +305,10 @@ def _bundle(
     t_uv, t_slit, t_face = e2, ei, ei
     r_xyz, r_slit, r_uv = e3, ei, e2
     if source == "auto":
+        # the points the starting fit kept: its per-slit RANSAC planes drop mislabelled ones
+        # (the target's points come first in the fit's points)
         on = (target_pts.face >= 0) & (target_pts.face < len(faces))
+        on &= fit.inlier[: len(target_pts)]
         t_uv, t_slit, t_face = target_pts.uv[on], target_pts.slit[on], target_pts.face[on]
     else:
         hand = hand_slit_points(cap)
