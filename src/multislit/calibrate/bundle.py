@@ -25,10 +25,12 @@ Further observations plug in as one more observation block and their parameters 
 parameter blocks, e.g. dots seen on the boards (a dot source, shared, and one direction per dot,
 indexed; each dot centroid's residual depends on the camera, its board, the source and its dot).
 
-:func:`adjust` runs SciPy's ``least_squares`` (trust region, soft-L1 robust loss) in rounds: the
-residuals of each observation block are divided by that block's noise, estimated robustly from
-the block's own residuals, and observations further than a few noise levels from the fit are
-left out before the next round. :class:`BundleResult` holds the fitted geometry, the parameters'
+:func:`adjust` runs SciPy's ``least_squares`` (MINPACK's Levenberg-Marquardt, with the
+Jacobian above) in rounds: the residuals of each observation block are divided by that block's
+noise, estimated robustly from the block's own residuals (and inflated where neighbouring
+stripe centres err together), a soft-L1 robust loss enters as weights from the last round's
+residuals (iteratively reweighted least squares), and observations further than a few noise
+levels from their own stripe are left out before the next round. :class:`BundleResult` holds the fitted geometry, the parameters'
 standard errors, the residuals per source, per image and per image region, and the predicted 3D
 uncertainty of triangulated points over the measuring volume.
 

@@ -373,6 +373,13 @@ def _bundle_planes(
              "board stripes": "reference boards"}  # fmt: skip
     out = list(origin)
     for j in np.flatnonzero(fitted):
+        if out[j] == "common axis model":  # placed between its neighbours to start
+            notes[:] = [n for n in notes if not n.startswith(f"slit {j} has no plane from its")]
+            notes.append(
+                f"slit {j} gave no plane from its points: its observations lie along one line, "
+                "and its plane passes through the common axis and that line (fitted in the "
+                "adjustment)"
+            )
         out[j] = " + ".join(
             names[src] for src, n in bundle.slit_sources.items() if n[j] > 0 and src in names
         )
