@@ -160,7 +160,7 @@ def measure(capture: Path, source: str = "auto", report: bool = False) -> dict[s
         "worst_slit": (worst, float(per[worst])),
         "camera_alone_mm": rms(cam_err),
         "depth_of_003_px_mm": depth_of_pixels(capture, scan),
-        "slit_model": r.bundle.kind if r.bundle is not None else "",
+        "slit_model": getattr(getattr(r, "bundle", None), "kind", "(sequential)"),
         "seconds": secs,
     }
 
