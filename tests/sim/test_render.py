@@ -127,6 +127,23 @@ def test_marker_corners_appear_at_projected_xyz(clean_spec):
         assert abs(q[0] - q[2]) > 0.5 * max(q)
 
 
+def test_marker_edges_are_integrated_over_the_pixel(small_spec):
+    """Pixels on a marker's edges are supersampled on an n-rooks lattice: the found corners lie
+    where the markers project, well below the detector's own scatter. Measured (half size,
+    default noise): 0.025 px RMS per coordinate; a square 3 x 3 grid of samples gave 0.065 px
+    (its coverage steps by thirds along an edge near a pixel axis)."""
+    from multislit.calibrate.markers import find_marker_corners
+
+    rig = SimulatedRig.build(small_spec)
+    scene, markers, _ = standard_object()
+    r = render(rig, scene, np.random.default_rng(1), lasers=False)
+    uv = rig.camera.project(np.array([m["xyz"] for m in markers]))
+    det = find_marker_corners(r.image, uv + 1.0, [m["id"] for m in markers])
+    assert det.found.all()
+    err = det.uv - uv
+    assert np.sqrt(np.mean(err**2)) < 0.035 and np.abs(err).max() < 0.1
+
+
 def test_same_seed_same_image_other_seed_other_noise(small_rig):
     scene = reference_board(900)
     a = render(small_rig, scene, np.random.default_rng(7)).image

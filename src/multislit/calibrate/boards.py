@@ -27,10 +27,11 @@ from numpy.typing import NDArray
 from multislit.calibrate.projector import ProjectorFit, fit_projector
 from multislit.calibrate.slit_planes import SlitPlanes
 from multislit.calibrate.slit_points import EXTRACT_OPTIONS, SlitPointSet, _row_gap
-from multislit.errors import MultislitError
+from multislit.errors import MultislitError, ReferenceImageError
 from multislit.geometry import PinholeCamera, fit_plane_robust, intersect_rays_planes
 from multislit.geometry.camera import F64
-from multislit.identify import ReferenceSet, capture_reference, curve_u
+from multislit.identify import ReferenceSet, curve_u
+from multislit.identify.reference import reference_curves
 from multislit.io import Capture
 from multislit.stripes import extract_slits, refine_centres
 
@@ -52,16 +53,19 @@ class ReferenceStripes:
 
     Attributes
     ----------
-    names : (R,) reference image names
-    uv : list of R arrays (M_r, 2) float64, px, stripe centres (re-centred along the stripe)
+    names : (R,) reference image names (file stems)
+    uv : list of R arrays (M_r, 2) float64, px, stripe centres (re-centred along the stripe
+        where :func:`~multislit.stripes.refine_centres` can)
     slit : list of R arrays (M_r,) int, slit number of each centre
     num_slits : int
+    notes : remarks for people (reference images left out, and why)
     """
 
     names: tuple[str, ...]
     uv: list[F64]
     slit: list[NDArray[np.intp]]
     num_slits: int
+    notes: tuple[str, ...] = ()
 
     def shown(self) -> NDArray[np.bool_]:
         """(K,) bool, slits with a line of >= a few tens of centres on some board."""
@@ -77,7 +81,9 @@ def reference_stripes(capture: Capture, reference: ReferenceSet | None = None) -
     Parameters
     ----------
     capture : the capture (its ``references`` images and ``num_slits``)
-    reference : the prepared reference set of these images; default: prepared here
+    reference : the prepared reference set of these images; default: each image's curves
+        fitted on its own (:func:`~multislit.identify.reference.reference_curves`: no epipole
+        needed), and images whose curves cannot be fitted left out (``notes`` says why)
 
     Returns
     -------
@@ -86,29 +92,45 @@ def reference_stripes(capture: Capture, reference: ReferenceSet | None = None) -
     Raises
     ------
     ReferenceImageError
-        The reference images cannot be prepared (missing, or not every slit on the board).
+        No reference image gives curves.
     """
-    imgs = [capture.image(p) for p in capture.references]
-    if reference is None:
-        reference = capture_reference(capture)
+    k = int(capture.num_slits)
+    names, curves, vranges, spacings, imgs, notes = [], [], [], [], [], []
+    for i, path in enumerate(capture.references):
+        img = capture.image(path)
+        if reference is not None:
+            c, vr, sp = reference.curves[i], reference.vrange[i], reference.spacing_px
+        else:
+            try:
+                c, vr, sp = reference_curves(img, k, path.stem)
+            except ReferenceImageError as exc:
+                notes.append(f"reference image {path.stem} not used: {exc}")
+                continue
+        names.append(path.stem)
+        curves.append(c)
+        vranges.append(vr)
+        spacings.append(sp)
+        imgs.append(img)
+    if not names:
+        raise ReferenceImageError("no reference image gives the slits' curves: " + "; ".join(notes))
     uvs, slits = [], []
-    tol = _LABEL_FRACTION * reference.spacing_px
-    for r, img in enumerate(imgs):
+    for img, c, vrange, sp in zip(imgs, curves, vranges, spacings, strict=True):
+        tol = _LABEL_FRACTION * sp
         ex = extract_slits(img, **EXTRACT_OPTIONS)
         u, v = np.asarray(ex.u, float), np.asarray(ex.v, float)
-        cu = curve_u(reference.curves[r][:, None, :], v[None, :])  # (K, M)
-        k = np.argmin(np.abs(cu - u[None, :]), axis=0)
-        d = np.abs(cu[k, np.arange(len(u))] - u)
-        vr = reference.vrange[r][k]
+        cu = curve_u(c[:, None, :], v[None, :])  # (K, M)
+        kk = np.argmin(np.abs(cu - u[None, :]), axis=0)
+        d = np.abs(cu[kk, np.arange(len(u))] - u)
+        vr = vrange[kk]
         keep = (ex.segment >= 0) & (d < tol) & (v >= vr[:, 0]) & (v <= vr[:, 1])
         sw = ex.stripe_width_px if math.isfinite(ex.stripe_width_px) else 3.0
         kw = {"dot_size_px": ex.dot_size_px} if math.isfinite(ex.dot_size_px) else {}
         keep &= _row_gap(u, v) > 2.0 * sw  # a dot beside the stripe: which one is it?
         u2, ok = refine_centres(img, u, v, np.where(keep, ex.segment, -1), sw, **kw)
-        keep &= ok
+        u2 = np.where(ok, u2, u)  # where the stripe is not re-centred, its first centre
         uvs.append(np.stack([u2[keep], v[keep]], axis=1))
-        slits.append(k[keep].astype(np.intp))
-    return ReferenceStripes(tuple(reference.names), uvs, slits, int(capture.num_slits))
+        slits.append(kk[keep].astype(np.intp))
+    return ReferenceStripes(tuple(names), uvs, slits, k, tuple(notes))
 
 
 @dataclass(frozen=True, eq=False)

@@ -436,10 +436,11 @@ def capture_dot_projector(
     slit_planes: SlitPlanes,
     stripe_width_px: float,
     dot_size_px: float,
+    *,
+    board_planes: F64 | None = None,
 ) -> DotFit:
-    """The dot projector of a capture: the reference boards posed by the final slit planes
-    (:func:`~multislit.calibrate.boards.board_points`), their dots put in 3D and fitted
-    (:func:`fit_dot_projector`).
+    """The dot projector of a capture: the reference boards' dots put in 3D on the boards'
+    planes and fitted (:func:`fit_dot_projector`).
 
     Parameters
     ----------
@@ -448,6 +449,10 @@ def capture_dot_projector(
     camera : the calibrated camera
     slit_planes : the calibrated slit planes
     stripe_width_px, dot_size_px : px, the stripes' and the dots' FWHM in the references
+    board_planes : (R, 4) float64, optional
+        Each board's plane (mm, camera frame; NaN rows: not posed), e.g. from the bundle
+        adjustment. Default: posed by the slit planes
+        (:func:`~multislit.calibrate.boards.board_points`).
 
     Raises
     ------
@@ -455,9 +460,13 @@ def capture_dot_projector(
         The boards cannot be posed, or the dots do not give a source (see
         :func:`fit_dot_projector`).
     """
-    valid = slit_planes.valid
-    boards = board_points(stripes, camera, slit_planes.planes, valid)
+    if board_planes is None:
+        board_planes = board_points(stripes, camera, slit_planes.planes, slit_planes.valid).planes
+    if len(board_planes) != len(images):
+        raise ValueError(
+            f"board_planes has {len(board_planes)} rows for {len(images)} reference images"
+        )
     dots, dist = board_dots(images, stripe_width_px, dot_size_px)
-    fit = fit_dot_projector(dots, boards.planes, camera, slit_planes, dist, stripe_width_px)
-    proj = replace(fit.projector, reference_depths=_board_depths(camera, boards.planes))
+    fit = fit_dot_projector(dots, board_planes, camera, slit_planes, dist, stripe_width_px)
+    proj = replace(fit.projector, reference_depths=_board_depths(camera, board_planes))
     return replace(fit, projector=proj)

@@ -43,8 +43,16 @@ from multislit.calibrate.boards import (
     plane_origins,
     reference_stripes,
 )
+from multislit.calibrate.bundle import (
+    CaptureBundle,
+    CaptureObservations,
+    adjust_capture,
+    bundle_report,
+)
+from multislit.calibrate.camera import rms
 from multislit.calibrate.capture_camera import CameraCalibration, camera_from_capture
 from multislit.calibrate.dots import DotFit, capture_dot_projector
+from multislit.calibrate.edges import fold_points
 from multislit.calibrate.model import Calibration
 from multislit.calibrate.projector import ProjectorFit, auto_fit_problem, fit_projector
 from multislit.calibrate.slit_labels import label_by_order
@@ -91,6 +99,8 @@ class CalibrationResult(Summarised):
     origin : (K,) str, where each slit's plane came from (:func:`plane_origins`; "" = none)
     reference : the capture's prepared :class:`~multislit.identify.ReferenceSet` (None: the
         reference boards were not used); scans of the capture can reuse it
+    bundle : CaptureBundle, the bundle adjustment whose camera and slit planes the calibration
+        holds (residuals per source, image and region, standard errors, 3D uncertainty)
     dots : DotFit, the dot projector fitted on the reference boards (None: not calibrated, the
         notes say why)
     """
@@ -104,6 +114,7 @@ class CalibrationResult(Summarised):
     boards: BoardPoints | None = None
     origin: tuple[str, ...] = ()
     reference: ReferenceSet | None = None
+    bundle: CaptureBundle | None = None
     dots: DotFit | None = None
 
     def summary(self) -> str:
@@ -120,6 +131,10 @@ class CalibrationResult(Summarised):
         worst_slits = [
             (int(j), float(rms_mm[j])) for j in np.argsort(-np.nan_to_num(rms_mm, nan=-1))[:3]
         ]
+        cal = self.calibration
+        mres = cal.marker_residuals_px
+        worst = [(cal.marker_ids[i], float(mres[i])) for i in np.argsort(-mres)[:3]]
+        camera = cal.camera
         return {
             "source": self.source,
             "notes": list(self.notes),
@@ -127,13 +142,17 @@ class CalibrationResult(Summarised):
                 "total": len(self.camera.detection.ids),
                 "used": list(res.ids),
                 "rejected": self.camera.rejected,
-                "worst_px": res.worst(3),
+                "worst_px": worst,
             },
             "camera": {
                 "dlt_rms_px": res.dlt_rms_px,
-                "refined_rms_px": res.refined_rms_px,
-                "distortion": list(self.camera.refined.dist),
+                "markers_only_rms_px": res.refined_rms_px,
+                "refined_rms_px": float(cal.camera_rms_px),
+                "distortion": list(getattr(camera, "dist", ())),
             },
+            "bundle": None
+            if self.bundle is None
+            else bundle_report(self.bundle, np.flatnonzero(self.bundle.slit_item >= 0).tolist()),
             "points": {"count": len(self.points), "steps": [list(x) for x in self.points.steps]},
             "slit_planes": {
                 "fitted": int(valid.sum()),
@@ -156,7 +175,12 @@ class CalibrationResult(Summarised):
             },
             "reference_boards": None
             if self.boards is None
-            else {"planes": self.boards.planes.tolist(), "rms_mm": self.boards.rms_mm.tolist()},
+            else {
+                "planes": (
+                    self.bundle.board_planes if self.bundle is not None else self.boards.planes
+                ).tolist(),
+                "rms_mm": self.boards.rms_mm.tolist(),
+            },
             "dot_projector": None if self.dots is None else self.dots.report(),
             "projector_matrix": {
                 "median_rms_mm": float(np.nanmedian(self.projector.projector_rms_mm))
@@ -209,7 +233,7 @@ def calibrate_capture(
     if source not in _SOURCES:
         raise CalibrationError(f"source must be 'auto' or 'hand', got {source!r}")
     cap = as_capture(capture)
-    cam = camera_from_capture(cap)
+    cam = camera_from_capture(cap, use_stripes=False)
     notes: list[str] = []
     reference = _reference(cap, notes) if references else None
     if source == "auto":
@@ -232,9 +256,11 @@ def calibrate_capture(
         )
         pts = hand_slit_points(cap)
         fit = fit_projector(pts, cap.num_slits)
-    boards, origin, stripes = None, plane_origins(fit, pts), None
-    if reference is not None:
-        pts, fit, boards, origin, stripes = _add_boards(cap, cam, pts, fit, notes, reference)
+    boards, origin = None, plane_origins(fit, pts)
+    target_pts = pts
+    stripes = _board_stripes(cap, reference, notes) if references else None
+    if stripes is not None:
+        pts, fit, boards, origin = _add_boards(cap, cam, pts, fit, notes, stripes)
     if used_source == "hand":
         bad = _hand_reading_problem(hand_slit_points(cap), fit.slit_planes.planes)
         if bad:
@@ -242,38 +268,142 @@ def calibrate_capture(
     grazing = _grazing_problem(fit.slit_planes.planes, cam, pts)
     if grazing:
         raise CalibrationError(grazing + "; check calibration/slits.png and the slit readings")
+    bundle = _bundle(cap, cam, target_pts, used_source, fit, boards, stripes)
+    if bundle.problems:
+        raise CalibrationError("calibration does not fit: " + "; ".join(bundle.problems))
+    fit, origin = _bundle_planes(fit, bundle, origin, notes)
     notes += _fit_notes(fit)
-    dots = None
-    if stripes is not None and cam.refined is not None:
-        try:
-            dots = capture_dot_projector(
-                [cap.image(p) for p in cap.references],
-                stripes,
-                cam.refined,
-                fit.slit_planes,
-                reference.stripe_width_px,
-                reference.dot_size_px,
-            )
-        except CalibrationError as exc:
-            notes.append(f"{exc}; scans can use the template identification only")
-    elif reference is None:
-        notes.append("no dot projector without the reference boards")
-    res = cam.residuals
+    marker_px = _marker_residuals(cap, cam, bundle)
+    dots = _dot_projector(cap, reference, stripes, bundle, fit, notes)
     calib = Calibration(
         image_size=cap.image_size,
         dlt=cam.dlt,
-        refined=cam.refined,
+        refined=bundle.camera,
         projector=fit.projector,
         slit_planes=fit.slit_planes,
-        camera_rms_px=res.refined_rms_px,
-        dlt_rms_px=res.dlt_rms_px,
-        marker_ids=res.ids,
-        marker_residuals_px=res.refined_px,
+        camera_rms_px=rms(marker_px),
+        dlt_rms_px=cam.residuals.dlt_rms_px,
+        marker_ids=cam.residuals.ids,
+        marker_residuals_px=marker_px,
         dot_projector=None if dots is None else dots.projector,
     )
     return CalibrationResult(
-        calib, cam, pts, fit, used_source, tuple(notes), boards, origin, reference, dots
+        calib, cam, pts, fit, used_source, tuple(notes), boards, origin, reference, bundle, dots
     )
+
+
+def _marker_faces(cap: Capture) -> np.ndarray:
+    """(F, 4) the target's face planes with unit normals."""
+    f = np.array([face.plane for face in cap.target.faces], float).reshape(-1, 4)
+    return f / np.linalg.norm(f[:, :3], axis=1, keepdims=True)
+
+
+def _bundle(
+    cap: Capture,
+    cam: CameraCalibration,
+    target_pts: SlitPointSet,
+    source: str,
+    fit: ProjectorFit,
+    boards: BoardPoints | None,
+    stripes: ReferenceStripes | None,
+) -> CaptureBundle:
+    """The bundle adjustment (:func:`~multislit.calibrate.bundle.adjust_capture`) of the
+    capture's markers and the target's folds (:func:`~multislit.calibrate.edges.fold_points`),
+    the stripes on the target (or hand readings) and on the reference boards."""
+    det = cam.detection
+    sel = [det.ids.index(i) for i in cam.residuals.ids]
+    faces = _marker_faces(cap)
+    e3, e2, ei = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.intp)
+    t_uv, t_slit, t_face = e2, ei, ei
+    r_xyz, r_slit, r_uv = e3, ei, e2
+    if source == "auto":
+        # the points the starting fit kept: its per-slit RANSAC planes drop mislabelled ones
+        # (the target's points come first in the fit's points)
+        on = (target_pts.face >= 0) & (target_pts.face < len(faces))
+        on &= fit.inlier[: len(target_pts)]
+        t_uv, t_slit, t_face = target_pts.uv[on], target_pts.slit[on], target_pts.face[on]
+    else:
+        hand = hand_slit_points(cap)
+        r_xyz, r_slit, r_uv = hand.xyz, hand.slit, hand.uv
+    rel = [_relative(cap, p) for p in (cap.markers_image, cap.slits_image)]
+    folds = fold_points(cap.image(cap.markers_image), cam.refined, cap.target.faces)
+    obs = CaptureObservations(
+        image_size=cap.image_size,
+        marker_xyz=cap.target.marker_xyz[sel],
+        marker_uv=det.uv[sel],
+        faces=faces,
+        target_uv=t_uv,
+        target_slit=t_slit,
+        target_face=t_face,
+        readings_xyz=r_xyz,
+        readings_slit=r_slit,
+        readings_uv=r_uv,
+        board_uv=tuple(stripes.uv) if stripes is not None else (),
+        board_slit=tuple(stripes.slit) if stripes is not None else (),
+        fold_uv=folds.uv,
+        fold_line=folds.fold,
+        fold_P=folds.P,
+        fold_D=folds.D,
+        names=(
+            *rel,
+            "target.json (slit_points)",
+            *(_reference_paths(cap, stripes.names) if stripes is not None else []),
+        ),
+    )
+    board_planes = boards.planes if boards is not None and stripes is not None else e3[:, :0]
+    return adjust_capture(obs, cam.refined, fit.slit_planes.planes, board_planes.reshape(-1, 4))
+
+
+def _reference_paths(cap: Capture, stems: tuple[str, ...]) -> list[str]:
+    """The reference images named ``stems`` (file stems), relative to the capture folder."""
+    by_stem = {p.stem: p for p in cap.references}
+    return [_relative(cap, by_stem[s]) for s in stems]
+
+
+def _relative(cap: Capture, path: Path) -> str:
+    """``path`` relative to the capture folder (as given if outside it)."""
+    try:
+        return str(Path(path).relative_to(cap.root))
+    except ValueError:
+        return str(path)
+
+
+def _bundle_planes(
+    fit: ProjectorFit, bundle: CaptureBundle, origin: tuple[str, ...], notes: list[str]
+) -> tuple[ProjectorFit, tuple[str, ...]]:
+    """The projector fit with the bundle's slit planes, and where each plane came from (the
+    sources of its observations); slits the bundle left out keep their plane from the points
+    (or, between planed slits, the common axis model's)."""
+    sp = fit.slit_planes
+    fitted = np.all(np.isfinite(bundle.slit_planes), axis=1)
+    planes = np.where(fitted[:, None], bundle.slit_planes, sp.planes)
+    rms_mm = np.where(fitted, bundle.slit_rms_mm, sp.rms_mm)
+    counts = np.where(fitted, bundle.slit_counts, sp.counts)
+    a, u = bundle.axis
+    new = replace(sp, planes=planes, rms_mm=rms_mm, counts=counts, axis_point=a, axis_direction=u)
+    names = {"target stripes": "target faces", "hand readings": "hand readings",
+             "board stripes": "reference boards"}  # fmt: skip
+    out = list(origin)
+    for j in np.flatnonzero(fitted):
+        if out[j] == "common axis model":  # placed between its neighbours to start
+            notes[:] = [n for n in notes if not n.startswith(f"slit {j} has no plane from its")]
+            notes.append(
+                f"slit {j} gave no plane from its points: its observations lie along one line, "
+                "and its plane passes through the common axis and that line (fitted in the "
+                "adjustment)"
+            )
+        out[j] = " + ".join(
+            names[src] for src, n in bundle.slit_sources.items() if n[j] > 0 and src in names
+        )
+    return replace(fit, slit_planes=new), tuple(out)
+
+
+def _marker_residuals(cap: Capture, cam: CameraCalibration, bundle: CaptureBundle) -> np.ndarray:
+    """(M,) px, the reprojection distance of each marker used by the bundle's camera."""
+    det = cam.detection
+    sel = [det.ids.index(i) for i in cam.residuals.ids]
+    uv = bundle.camera.project(cap.target.marker_xyz[sel])
+    return np.linalg.norm(uv - det.uv[sel], axis=1)
 
 
 def _reference(cap: Capture, notes: list[str]) -> ReferenceSet | None:
@@ -284,8 +414,58 @@ def _reference(cap: Capture, notes: list[str]) -> ReferenceSet | None:
     try:
         return capture_reference(cap)
     except ReferenceImageError as exc:
+        notes.append(
+            f"the reference set cannot be prepared ({exc}); the boards' stripes are numbered "
+            "image by image"
+        )
+        return None
+
+
+def _dot_projector(
+    cap: Capture,
+    reference: ReferenceSet | None,
+    stripes: ReferenceStripes | None,
+    bundle: CaptureBundle,
+    fit: ProjectorFit,
+    notes: list[str],
+) -> DotFit | None:
+    """The dot projector fitted on the reference boards as the bundle adjustment posed them,
+    or None with a note saying why there is none."""
+    if reference is None or stripes is None:
+        notes.append(
+            "no dot projector without prepared reference boards; scans can use the template "
+            "identification only"
+        )
+        return None
+    try:
+        return capture_dot_projector(
+            [cap.image(p) for p in cap.references],
+            stripes,
+            bundle.camera,
+            fit.slit_planes,
+            reference.stripe_width_px,
+            reference.dot_size_px,
+            board_planes=bundle.board_planes if len(bundle.board_planes) else None,
+        )
+    except CalibrationError as exc:
+        notes.append(f"{exc}; scans can use the template identification only")
+        return None
+
+
+def _board_stripes(
+    cap: Capture, reference: ReferenceSet | None, notes: list[str]
+) -> ReferenceStripes | None:
+    """The numbered stripe centres of the reference boards (:func:`reference_stripes`; without
+    a prepared reference set, each image's own curves), or None with a note."""
+    if not cap.references:
+        return None
+    try:
+        stripes = reference_stripes(cap, reference)
+    except ReferenceImageError as exc:
         notes.append(f"reference boards not used ({exc}); slit planes from the target alone")
         return None
+    notes += list(stripes.notes)
+    return stripes
 
 
 def _auto_projector(
@@ -294,10 +474,20 @@ def _auto_projector(
     labels: tuple[ArrayLike, ArrayLike, ArrayLike] | None,
     reference: ReferenceSet | None,
 ) -> tuple[SlitPointSet, ProjectorFit | None, str | None]:
-    """Automatic points and their projector fit, or why the fit cannot be trusted."""
+    """Automatic points and their projector fit, or why the fit cannot be trusted (also when
+    the stripes cannot be labelled: the labels' dots need the prepared reference images)."""
     if labels is None:
         img = read_capture_image(cap, cap.slits_image, "slit image")
-        lab = label_by_order(img, cap, camera=cam.from_markers, reference=reference)
+        try:
+            lab = label_by_order(img, cap, camera=cam.from_markers, reference=reference)
+        except ReferenceImageError as exc:
+            e3, e2, ei = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.intp)
+            empty = SlitPointSet(e3, ei, e2, ei, "auto", (("labelled", 0),))
+            return (
+                empty,
+                None,
+                f"the stripes cannot be labelled without the reference images ({exc})",
+            )
         labels = (lab.u, lab.v, lab.slit)
     pts = auto_slit_points(cap, cam.refined, labels)
     try:
@@ -402,15 +592,13 @@ def _add_boards(
     pts: SlitPointSet,
     fit: ProjectorFit,
     notes: list[str],
-    reference: ReferenceSet,
-) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...], ReferenceStripes]:
-    """The fit with the reference boards' points (:func:`fit_with_boards`), each plane's origin
-    and the reference images' numbered stripe centres.
+    stripes: ReferenceStripes,
+) -> tuple[SlitPointSet, ProjectorFit, BoardPoints | None, tuple[str, ...]]:
+    """The fit with the reference boards' points (:func:`fit_with_boards`), and each plane's origin.
 
     Appends to ``notes``; raises :class:`CalibrationError` naming the slits the references show
     that end without a plane.
     """
-    stripes = reference_stripes(cap, reference)
     camera = cam.refined if cam.refined is not None else cam.dlt
     n_faces = len(cap.target.faces) if cap.target is not None else 0
     bf = fit_with_boards(pts, fit, stripes, camera, n_faces)
@@ -436,7 +624,7 @@ def _add_boards(
             + "".join(f"; {n}" for n in bf.boards.notes)
             + "; check the reference images (every slit on every board) and the target image"
         )
-    return bf.points, fit, bf.boards, tuple(origin), stripes
+    return bf.points, fit, bf.boards, tuple(origin)
 
 
 def _fit_notes(fit: ProjectorFit) -> list[str]:
@@ -483,8 +671,9 @@ def format_report(result: CalibrationResult) -> list[str]:
     for i, why in m["rejected"].items():
         lines.append(f"  rejected {i}: {why}")
     lines.append(
-        f"camera: DLT RMS {c['dlt_rms_px']:.3f} px, refined RMS {c['refined_rms_px']:.3f} px; "
-        "worst markers " + ", ".join(f"{i} {v:.3f}" for i, v in m["worst_px"])
+        f"camera: DLT RMS {c['dlt_rms_px']:.3f} px, markers alone {c['markers_only_rms_px']:.3f} "
+        f"px, adjusted {c['refined_rms_px']:.3f} px; worst markers "
+        + ", ".join(f"{i} {v:.3f}" for i, v in m["worst_px"])
     )
     src = (
         "hand readings (target.json slit_points)"
@@ -494,20 +683,16 @@ def format_report(result: CalibrationResult) -> list[str]:
     lines.append(f"projector points: {r['points']['count']} from {src}")
     if result.source == "auto":
         lines.append("  " + " -> ".join(f"{name} {n}" for name, n in r["points"]["steps"]))
+    if r["bundle"] is not None:
+        lines += _bundle_lines(r["bundle"])
     lines.append(
         f"slit planes: {s['fitted']} of {s['num_slits']} fitted, RMS median "
         f"{s['median_rms_mm']:.4f} mm; worst "
         + ", ".join(f"slit {j} {v:.4f}" for j, v in s["worst_rms_mm"] if math.isfinite(v))
-        + f"; {s['outliers_dropped']} outlier point(s) dropped"
+        + f"; {s['outliers_dropped']} outlier point(s) dropped before the adjustment"
     )
     for row in _origin_rows(s["per_slit"]):
         lines.append("  " + row)
-    if r["reference_boards"] is not None:
-        lines.append(
-            "reference boards posed by the calibrated slits, RMS "
-            + ", ".join(f"{v:.4f}" for v in r["reference_boards"]["rms_mm"])
-            + " mm"
-        )
     d = r["dot_projector"]
     if d is not None:
         lines.append(
@@ -524,6 +709,62 @@ def format_report(result: CalibrationResult) -> list[str]:
         )
     for note in result.notes:
         lines.append(f"note: {note}")
+    return lines
+
+
+def _bundle_lines(b: dict[str, Any]) -> list[str]:
+    """Report lines of the bundle adjustment: residuals per source and region, standard errors
+    of the camera, the predicted 3D uncertainty."""
+    n_obs = sum(v["kept"] for v in b["sources"].values())
+    lines = [
+        f"bundle adjustment: {b['parameters']} parameters, {n_obs} observations, slit planes "
+        f"{'through a common axis' if b['slit_model'] == 'common axis' else 'free'}, "
+        f"{'converged' if b['converged'] else 'NOT converged'} in {b['rounds']} round(s)"
+    ]
+    for name, v in b["sources"].items():
+        u = v["unit"]
+        lines.append(
+            f"  {name}: {v['kept']} of {v['count']} kept, RMS {v['rms']:.4f} {u} (noise "
+            f"{v['sigma']:.4f} {u}"
+            + (
+                f", correlated along the stripes: x{v['inflation']:.1f} variance"
+                if v["inflation"] > 1.05
+                else ""
+            )
+            + ")"
+        )
+        if len(v["regions"]) > 1:
+            lines.append(
+                "    by region: "
+                + ", ".join(f"{reg} {x[1]:.3f}" for reg, x in v["regions"].items())
+            )
+    cam = b["camera"]
+    lines.append(
+        "  camera (value +- standard error): "
+        + ", ".join(
+            f"{k} {v:.6g} +- {se:.2g}" for k, (v, se) in cam.items() if not k.startswith(("r", "t"))
+        )
+    )
+    for name, t in b["tests"].items():
+        moved = (
+            f", moving a plane by up to {t['change']:.4f} mm (matters above {t['matters_mm']:.4f})"
+            if "change" in t
+            else ""
+        )
+        lines.append(
+            f"  {name}: chi-square {t['chi2']:.0f} would drop by {t['gain']:.1f} with "
+            f"{t['dof']} more parameter(s) (significant above {t['limit']:.1f}){moved}: "
+            + ("added" if t["added"] else "not supported")
+        )
+    if b["uncertainty"]:
+        lines.append(
+            "  predicted 3D error (1 sigma) of triangulated points: "
+            + "; ".join(
+                f"{u['board']} at {u['distance_mm']:.0f} mm: median {u['median_mm']:.4f}, "
+                f"95 % {u['p95_mm']:.4f} mm"
+                for u in b["uncertainty"]
+            )
+        )
     return lines
 
 

@@ -712,3 +712,35 @@ def capture_reference(capture: Capture) -> ReferenceSet:
     """:func:`prepare_reference` of a capture folder's reference images (named by file stem)."""
     imgs = [capture.image(p) for p in capture.references]
     return prepare_reference(imgs, capture.num_slits, [p.stem for p in capture.references])
+
+
+def reference_curves(image: NDArray, num_slits: int, name: str = "ref") -> tuple[F64, F64, float]:
+    """The slit curves of one reference image, numbered 0..N-1 left to right, without the
+    other images or the epipole (as :func:`prepare_reference` fits them).
+
+    Parameters
+    ----------
+    image : (H, W) a reference image (a flat board, lasers on)
+    num_slits : int, N
+    name : the image's name for messages
+
+    Returns
+    -------
+    curves : (N, CURVE_DEGREE + 1) float64, u = p(v) per slit (:func:`curve_u`)
+    vrange : (N, 2) float64, px, the rows each curve was fitted over
+    spacing_px : float, px, the median distance between neighbouring curves mid-height
+
+    Raises
+    ------
+    ReferenceImageError
+        Not every slit crosses the board, or the curves cross.
+    """
+    try:
+        as_image(image, name=f"reference image {name!r}")
+    except SlitExtractionError as exc:
+        raise ReferenceImageError(str(exc)) from None
+    h = np.shape(image)[0]
+    curves, vrange = _fit_curves(extract_slits(image), num_slits, name, h)
+    mid = curve_u(curves, np.full(num_slits, h / 2.0))
+    spacing = float(np.median(np.diff(mid))) if num_slits > 1 else float(np.shape(image)[1]) / 4
+    return curves, vrange, spacing
