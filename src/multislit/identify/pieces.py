@@ -217,13 +217,7 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
     sel = np.repeat(ok, n)
     start = np.r_[0, np.cumsum(n[ok])].astype(np.int64)
     # per gap, the median ratio of its width to the widths beside it (NaN: none beside)
-    lr = np.log(ratio)
-    med = np.full(len(n), np.nan)
-    for g in np.flatnonzero(ok):
-        x = lr[bounds[g] : bounds[g + 1]]
-        x = x[np.isfinite(x)]
-        if x.size:
-            med[g] = np.median(x)
+    med = _group_medians(np.log(ratio), np.repeat(np.arange(len(n)), n), len(n))
     return Gaps(
         piece[a[bounds[:-1][ok]]],
         piece[b[bounds[:-1][ok]]],
@@ -233,6 +227,22 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
         start.copy(),
         np.exp(med[ok]),
     )
+
+
+def _group_medians(x: F64, group: I64, num_groups: int) -> F64:
+    """(num_groups,) the median of the finite ``x`` of each group (NaN: none)."""
+    f = np.isfinite(x)
+    x, group = x[f], group[f]
+    o = np.lexsort((x, group))
+    x = x[o]
+    n = np.bincount(group, minlength=num_groups)
+    start = np.r_[0, np.cumsum(n)[:-1]]
+    out = np.full(num_groups, np.nan)
+    g = np.flatnonzero(n)
+    lo = start[g] + (n[g] - 1) // 2
+    hi = start[g] + n[g] // 2
+    out[g] = 0.5 * (x[lo] + x[hi])
+    return out
 
 
 def continuations(u: F64, v: F64, piece: I64, max_rows: int, max_du: float) -> tuple[I64, I64]:
