@@ -563,20 +563,28 @@ def test_batch_unreachable_scheduler(calibrated, frames_dir, tmp_path, capsys, m
 
 
 @pytest.mark.slow
-def test_prior_keeps_the_slits_of_the_full_search(calibrated, frames_dir, serial_out, tmp_path):
-    """With ``--prior`` each frame is checked against the previous frame's slits first: no point
-    gets another slit than the single-image scan gives it, and almost none is lost."""
-    out = tmp_path / "prior"
-    assert main(["stream", str(calibrated), str(frames_dir), "-o", str(out), "--prior"]) == 0
-    for a, b in zip(sorted(serial_out.glob("*.ply")), sorted(out.glob("*.ply")), strict=True):
+def test_prior_keeps_the_slits_of_the_full_search(calibrated, frames_dir, tmp_path, capsys):
+    """With ``--prior`` (the template identification) each frame is checked against the
+    previous frame's slits first: no point gets another slit than the single-image scan gives
+    it, and almost none is lost. The identification by the dots' geometry takes no prior."""
+    base = ["stream", str(calibrated), str(frames_dir), "--method", "template"]
+    full, out = tmp_path / "full", tmp_path / "prior"
+    assert main([*base, "-o", str(full)]) == 0
+    assert main([*base, "-o", str(out), "--prior"]) == 0
+    for a, b in zip(sorted(full.glob("*.ply")), sorted(out.glob("*.ply")), strict=True):
         want, got = read_ply(a), read_ply(b)
         kw = np.round(want["v"]) * 1e5 + np.round(want["u"], 2)
         kg = np.round(got["v"]) * 1e5 + np.round(got["u"], 2)
         common, iw, ig = np.intersect1d(kw, kg, return_indices=True)
         assert np.array_equal(want["slit"][iw], got["slit"][ig]), a.name
         assert len(common) >= 0.99 * len(kw), a.name
-    argv = ["stream", str(calibrated), str(frames_dir), "-o", str(tmp_path / "o"), "--prior"]
-    assert main([*argv, "--workers", "2"]) == 2
+    assert main([*base, "-o", str(tmp_path / "o"), "--prior", "--workers", "2"]) == 2
+    capsys.readouterr()
+    argv = ["stream", str(calibrated), str(frames_dir), "-o", str(tmp_path / "g"), "--prior"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--method template" in err, err
+    assert not (tmp_path / "g").exists()
 
 
 def test_live_camera_of_the_wrong_size_stops(tmp_path: Path, monkeypatch):

@@ -523,8 +523,8 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument(
         "--prior",
         action="store_true",
-        help="check each frame's stripes against the previous frame's slits first (faster on "
-        "a moving scene; frames in order, --workers 1)",
+        help="with --method template: check each frame's stripes against the previous "
+        "frame's slits first (faster on a moving scene; frames in order, --workers 1)",
     )
     st.add_argument(
         "--pylon",

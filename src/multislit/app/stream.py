@@ -730,6 +730,11 @@ def stream(
     """
     check_frame_options(workers, every, max_frames, on_bad_frame)
     opts = as_scan_options(options)
+    if prior and opts.identification.method != "template":
+        raise MeasurementError(
+            "prior: the previous frame's slits are a prior for the template identification "
+            "only; add --method template, or leave out --prior"
+        )
     if prior and workers != 1:
         raise MeasurementError(
             f"prior needs the frames in order in one process: use workers 1, not {workers}"

@@ -36,10 +36,10 @@ def identify(
         (by the dots' geometry)
     extraction : an extraction of ``image`` already made (skips extracting again); default
         None: extract with the reference's stripe width and dot size
-    previous : the Identification of the previous frame of a sequence (the template method
-        checks its labels instead of searching every slit; see
-        :func:`~multislit.identify.labelling.identify_template`); the geometry method scores
-        every slit of every frame
+    previous : the Identification of the previous frame of a sequence: the template method
+        checks its labels instead of searching every slit (see
+        :func:`~multislit.identify.labelling.identify_template`); the geometry method takes
+        none (it scores every slit of every frame) and raises if given one
 
     Returns
     -------
@@ -51,7 +51,8 @@ def identify(
     ------
     IdentificationError
         (a ``ValueError``) if ``image`` is not a grayscale image of the reference's size,
-        ``options`` is not an IdentifyOptions, or the geometry method has no ``rig``.
+        ``options`` is not an IdentifyOptions, or the geometry method has no ``rig`` or is
+        given a ``previous``.
     """
     opts = IdentifyOptions() if options is None else options
     if not isinstance(opts, IdentifyOptions):
@@ -65,6 +66,12 @@ def identify(
             min_confidence=opts.confidence,
             extraction=extraction,
             previous=previous,
+        )
+    if previous is not None:
+        raise IdentificationError(
+            "previous: a prior from the previous frame is used by the template method only "
+            "(options=IdentifyOptions(method='template')); by the dots' geometry every frame "
+            "is identified on its own"
         )
     if not isinstance(rig, RigGeometry):
         raise IdentificationError(

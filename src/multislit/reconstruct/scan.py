@@ -475,6 +475,11 @@ def _scan(
     image = np.ascontiguousarray(as_image(image, channel=resolve_channel(image, ex_opts.channel)))
     size, planes = _check_scan_inputs(image, reference, calibration)
     prior = None
+    if previous is not None and opts.identification.method != "template":
+        raise MeasurementError(
+            "previous: the previous frame is a prior for the template identification only "
+            "(ScanOptions(identification=IdentifyOptions(method='template')))"
+        )
     if previous is not None:
         if len(previous.points) and tuple(previous.image_size) == tuple(size):
             prior = previous.identification  # a frame that was no scan is no prior
@@ -562,7 +567,8 @@ def scan_image(
         the template method its slit labels are a prior that the identification checks
         instead of searching every slit (see
         :func:`~multislit.identify.identify_template`'s ``previous``); a frame that gave no
-        points is not used. Default None: the full search (single images).
+        points is not used. The geometry method takes no prior (an error). Default None: the
+        full search (single images).
 
     Returns
     -------
