@@ -6,8 +6,6 @@ tested on half-size images; 49 slits at full size (``dense_scenes_capture``: at 
 stripes keep their width but lie half as far apart, as dense as 98 slits at full size).
 """
 
-import warnings
-
 import numpy as np
 import pytest
 
@@ -23,20 +21,12 @@ from multislit.identify import (
 from multislit.identify import (
     identify_template as identify,
 )
-from multislit.identify.labelling import _contradicted_by_dots, _identify, _segment_votes
+from multislit.identify.labelling import _identify, _segment_votes
 from multislit.identify.matching import (
     _in_volume,
     _Options,
     score_candidates,
     template_col_scale,
-)
-from multislit.identify.order import (
-    _agreeing,
-    _nanmedian_rows,
-    _run_votes,
-    confirm_by_neighbours,
-    fill_by_order,
-    order_labels,
 )
 from multislit.identify.segments import _sample_points, band_samples, near_segment_ends
 from multislit.io import Capture
@@ -278,10 +268,8 @@ def test_segment_votes_match_a_plain_loop():
     scores = rng.uniform(-0.5, 1.0, (600, 7))
     scores[rng.random(scores.shape) < 0.2] = np.nan
     scores[seg_of_sample == 3] = np.nan  # a segment without any candidate
-    means = {}
-    votes = _segment_votes(seg_of_sample, scores, means)
+    votes = _segment_votes(seg_of_sample, scores)
     assert set(votes) == set(np.unique(seg_of_sample).tolist())
-    assert set(means) == set(votes) - {3}
     for sid, (k, conf, m1, n) in votes.items():
         S = scores[seg_of_sample == sid]
         S = S[np.isfinite(S).any(axis=1)]
@@ -295,7 +283,6 @@ def test_segment_votes_match_a_plain_loop():
         se = d.std(ddof=1) / np.sqrt(len(S)) if len(S) > 1 else 0.3
         want = np.clip(max(0.0, mean[order[0]] - mean[order[1]] - se) / 0.3, 0, 1)
         assert (k, n) == (order[0], len(S))
-        assert np.allclose(means[sid], mean)
         assert m1 == pytest.approx(mean[order[0]]) and conf == pytest.approx(want)
 
 
@@ -346,17 +333,6 @@ def test_brightness_steps_split_where_a_plain_loop_would():
     assert np.all(out[seg == -1] == -1)
 
 
-def test_order_median_equals_numpy_nanmedian():
-    rng = np.random.default_rng(8)
-    for w in (1, 2, 3, 4):
-        a = rng.random((2000, w))
-        a[rng.random(a.shape) < 0.4] = np.nan
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            want = np.nanmedian(a, axis=1)
-        assert np.array_equal(_nanmedian_rows(a), want, equal_nan=True)
-
-
 def test_measuring_volume_limits_the_hypotheses(scenes_capture, scenes_reference):
     """A point can only take a slit that lights it at a depth inside the references' volume:
     with the volume shrunk to the boards' span, far-off slits lose their candidates."""
@@ -398,7 +374,7 @@ def test_template_follows_a_leaning_stripe(scenes_reference, tilted_plate):
     assert got["coverage"] >= 0.90
     dots = {}
     for mode in ("line", "off"):
-        p = _Options(follow_stripe=mode, order_fill=False)
+        p = _Options(follow_stripe=mode)
         dots[mode] = identification_metrics(
             _identify(tilted_plate.image, scenes_reference, None, p), tilted_plate.slit
         )
@@ -432,110 +408,6 @@ def test_junctions_of_two_slits_are_trimmed_further():
     assert set(v[unk & (seg == 0)]) == {0, 1, 48, 49}
 
 
-def _between_agreeing(run, rank, vote, voted, lab):
-    """Do the nearest dot-identified stripes either side of each point agree with its label?"""
-    _, _, _, left, right = _run_votes(run, rank, np.zeros(len(run), np.int64), voted, 1)
-    return _agreeing(rank, vote, lab, left, right)
-
-
-def test_order_label_needs_agreeing_neighbours():
-    # one row-run of five stripes, the middle one without a dot label. Between slits 17 and 21
-    # (two slits hidden, no gap wide enough to cut the run) neither 18 nor 20 is vouched for;
-    # between 17 and 19 the label 18 is
-    run = np.zeros(5, np.intp)
-    rank = np.arange(5, dtype=np.intp)
-    for votes, lab, expect in (
-        ([16, 17, -1, 21, 22], 20, False),
-        ([16, 17, -1, 21, 22], 18, False),
-        ([16, 17, -1, 19, 20], 18, True),
-        ([16, 17, -1, 19, 20], 19, False),
-    ):
-        vote = np.array(votes, np.intp)
-        labs = np.where(vote >= 0, vote, lab).astype(np.intp)
-        ok = _between_agreeing(run, rank, vote, vote >= 0, labs)
-        assert ok[2] == expect, (votes, lab)
-    # no dot-identified stripe on one side: not vouched for
-    vote = np.array([-1, -1, -1, 19, 20], np.intp)
-    assert not _between_agreeing(run, rank, vote, vote >= 0, np.arange(16, 21))[:3].any()
-
-
-def _rows_of_stripes(labels, rows=30, spacing=10.0):
-    """Stripes side by side for ``rows`` rows, one segment each, with per-stripe slit labels
-    (-1: unidentified); returns u, v, seg, slit (per point)."""
-    n = len(labels)
-    v = np.repeat(np.arange(rows, dtype=float), n)
-    u = np.tile(100.0 + spacing * np.arange(n), rows)
-    seg = np.tile(np.arange(n, dtype=np.int64), rows)
-    slit = np.tile(np.asarray(labels, np.int64), rows)
-    return u, v, seg, slit
-
-
-def test_order_fill_rules():
-    # stripes of slits 10..15; the dots identified 10, 11, 12 and 14; 13 and 15 are free
-    u, v, seg, slit = _rows_of_stripes([10, 11, 12, -1, 14, -1])
-    conf = np.where(slit >= 0, 1.0, 0.0)
-    order = order_labels(u, v, seg, slit, conf, 30)
-    assert set(order.between[seg == 3]) == {13}  # between 12 and 14
-    assert set(order.inside[seg == 3]) == {13} and set(order.inside[seg == 4]) == {14}
-    assert set(order.between[seg == 5]) == {-1}  # beyond the last dot-identified stripe
-    assert set(order.inside[seg == 5]) == {-1}
-    assert set(order.extended[seg == 5]) == {15}
-    usable = np.ones(len(u), bool)
-    # rule 1: order alone between agreeing stripes, never certain
-    got = fill_by_order(seg, slit, usable, order, 30, min_score=0.15)
-    assert got == {3: (13, pytest.approx(0.6))}
-    # rule 2: a weak dot vote that the (extrapolated) order confirms
-    mean = np.full(30, 0.1)
-    mean[15] = 0.3
-    got = fill_by_order(seg, slit, usable, order, 30, {5: (15, 0.1, mean)}, min_score=0.15)
-    assert got[5] == (15, pytest.approx(0.6))
-    # ... not when the dots' confidence is below min_confirm, nor when they say another slit
-    for k, c in ((15, 0.01), (16, 0.1)):
-        m = np.full(30, 0.1)
-        m[k] = 0.3
-        got = fill_by_order(seg, slit, usable, order, 30, {5: (k, c, m)}, min_score=0.15)
-        assert 5 not in got or got[5][1] < 0.5
-    # rule 3: extrapolated order where the dots do not contradict it (top 5, score >= 0.15)
-    m = np.full(30, 0.0)
-    m[[3, 4, 5, 6]] = 0.4
-    m[15] = 0.2
-    got = fill_by_order(seg, slit, usable, order, 30, {5: (-1, 0.0, m)}, min_score=0.15)
-    assert got[5] == (15, pytest.approx(0.4))
-    m[[7, 8]] = 0.4  # now six slits score better: the dots contradict it
-    got = fill_by_order(seg, slit, usable, order, 30, {5: (-1, 0.0, m)}, min_score=0.15)
-    assert 5 not in got
-
-
-def test_segment_end_rows_come_back_where_the_order_agrees(scenes_capture, scenes_reference):
-    # half size, seed 11 (measured): spheres 91.9 -> 92.3 % coverage, 100 -> 99.95 % correct
-    cap = Capture.open(scenes_capture)
-    img = cap.image(cap.root / "scans" / "spheres.png")
-    truth = np.load(cap.root / "truth" / "spheres.npz")["slit"]
-    got = {
-        e: identification_metrics(identify(img, scenes_reference, end_order=e), truth)
-        for e in (False, True)
-    }
-    assert got[True]["coverage"] >= got[False]["coverage"] + 0.002
-    assert got[True]["correct"] >= 0.995
-
-
-def test_weak_votes_confirmed_by_neighbours():
-    # five stripes side by side; the dots named 20 (identified), then weakly 21, 22, 30 and 24
-    u, v, seg, slit = _rows_of_stripes([20, -1, -1, -1, -1])
-    weak = np.array([-1, 21, 22, 30, 24])
-    order = order_labels(u, v, seg, slit, np.where(slit >= 0, 1.0, 0.0), 49)
-    usable = np.ones(len(u), bool)
-    got = confirm_by_neighbours(order, seg, slit, weak, usable, 0.5)
-    # 21 and 22 follow 20 in order; 30 has no consecutive neighbour; 24 neither (23 is missing)
-    assert got == {1: 21, 2: 22}
-    # a stripe missing between them (a gap wider than 1.6 spacings) cuts the run: no support
-    u2 = np.where(seg >= 2, u + 15.0, u)
-    order = order_labels(u2, v, seg, slit, np.where(slit >= 0, 1.0, 0.0), 49)
-    assert confirm_by_neighbours(order, seg, slit, weak, usable, 0.5) == {1: 21}
-    # too few usable points: nothing
-    assert confirm_by_neighbours(order, seg, slit, weak, v < 4, 0.5) == {}
-
-
 @pytest.mark.slow
 def test_coverage_losses_classify_every_stripe_pixel(results, scenes_capture):
     from types import SimpleNamespace
@@ -567,31 +439,6 @@ def test_coverage_losses_classify_every_stripe_pixel(results, scenes_capture):
     loss = coverage_losses(ident, truth)
     assert sum(loss.values()) == pytest.approx(1.0)
     assert loss["covered"] == pytest.approx(m["coverage"])
-
-
-def test_a_label_its_own_dots_contradict_is_left_out():
-    """Whatever labelled a segment, its own samples have the last word: a label their dots
-    score well below their best slit is left out; a label within their noise stays."""
-    rng = np.random.default_rng(5)
-    n_slits, per_seg = 8, 12
-    seg = np.repeat(np.arange(3), 20)  # three segments of 20 points
-    si = np.concatenate([np.arange(s * 20, s * 20 + per_seg) for s in range(3)])
-    scores = rng.normal(0.0, 0.08, (len(si), n_slits))
-    scores[:per_seg, 3] += 0.5  # segment 0: its dots clearly say slit 3
-    scores[per_seg : 2 * per_seg, 2] += 0.5  # segment 1: slit 2
-    # segment 2: no clear slit (dark surface), every slit within noise
-    slit = np.repeat([5, 2, 6], 20)  # segment 0 labelled against its dots (e.g. by order)
-    bad = _contradicted_by_dots(seg, si, scores, slit)
-    assert bad[:20].all()  # contradicted: left out
-    assert not bad[20:40].any()  # its dots agree
-    assert not bad[40:].any()  # undecided dots do not veto
-    # every label a segment carries is checked: segment 1's second half labelled 7
-    slit[30:40] = 7
-    bad = _contradicted_by_dots(seg, si, scores, slit)
-    assert bad[30:40].all() and not bad[20:30].any()
-    # unlabelled points and points without samples are never flagged
-    slit[:40] = -1
-    assert not _contradicted_by_dots(seg, si, scores, slit).any()
 
 
 def test_template_columns_follow_the_stripes_spacing(scenes_reference):

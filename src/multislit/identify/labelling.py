@@ -1,12 +1,11 @@
-"""Slit address identification (paper section 4.2, Fig. 12-13).
+"""Slit address identification by template matching (paper section 4.2, Fig. 12-13).
 
 The dot templates of sample points on each slit segment of a scan are matched with the
-reference dot images (:mod:`~multislit.identify.matching`). The samples of a segment vote; the
-margin between the best and the second-best slit gives a confidence; the left-to-right order
-of neighbouring segments is checked, and the order along the rows labels segments the dots
-left unsure (:mod:`~multislit.identify.order`). Last, a label that the segment's own dots
-contradict is left out. A segment that cannot be identified with confidence is dropped and
-counted, never guessed.
+reference dot images where the sample's epipolar line meets each slit's reference curve
+(:mod:`~multislit.identify.matching`). The samples of a segment vote: the slit with the best
+mean NCC wins, and the margin to the second-best slit, less its standard error, gives the
+confidence. A segment whose vote is too short, too weak or too unsure is dropped and counted,
+never guessed.
 """
 
 from __future__ import annotations
@@ -20,12 +19,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
 from multislit.identify.matching import _Options, score_candidates, template_geometry
-from multislit.identify.order import (
-    confirm_by_neighbours,
-    fill_by_order,
-    order_labels,
-    order_violations,
-)
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import Identification
 from multislit.identify.segments import (
@@ -55,14 +48,6 @@ _TRIM_ROWS = 2
 #: Rows left out next to a junction of two segments of different slits, as a fraction of the
 #: template's half height (at least ``_TRIM_ROWS``).
 _JUNCTION_TEMPLATE = 0.4
-#: A segment the dots were too unsure of takes their best slit where its neighbours in the rows
-#: confirm it on at least this share of its points (:func:`~.order.confirm_by_neighbours`).
-_NEIGHBOUR_SHARE = 0.5
-#: A segment's label is left out where its own samples' mean NCC for it lies below their best
-#: slit's by more than this many standard errors (of the per-sample difference) ...
-_VETO_SE = 2.0
-#: ... plus this much NCC.
-_VETO_TOLERANCE = 0.02
 #: Standard error taken for a segment with one sample, whose spread cannot be measured (NCC).
 _ONE_SAMPLE_SE = 0.3
 #: NCC counted for a hypothesis without a candidate (the slit cannot light the sample inside
@@ -113,13 +98,13 @@ def _filled_rows(scores, rows, fill):
     return out
 
 
-def _segment_votes(
-    seg_of_sample: I64, scores: F64, means: dict | None = None
-) -> dict[int, tuple[int, float, float, int]]:
+def _segment_votes(seg_of_sample: I64, scores: F64) -> dict[int, tuple[int, float, float, int]]:
     """Per segment: (best slit, confidence, best mean score, number of samples).
 
-    ``means``, if given, receives per segment with samples its (N,) mean score per slit (a
-    hypothesis without a candidate counting -0.2).
+    The samples' scores ``scores`` (M, N) are averaged per slit (a hypothesis without a
+    candidate counting ``_NO_CANDIDATE``); the best slit's confidence is its margin over the
+    second best, less the standard error of that margin (from the samples' spread;
+    ``_ONE_SAMPLE_SE`` for one sample), over 0.3, clipped to 0..1.
     """
     out: dict[int, tuple[int, float, float, int]] = {}
     if len(scores) == 0:
@@ -160,8 +145,6 @@ def _segment_votes(
     conf = np.clip(margin / 0.3, 0.0, 1.0)
     for j, sid in enumerate(s_sorted[starts]):
         out[int(sid)] = (int(k1[j]), float(conf[j]), float(m1[j]), int(n[j]))
-    if means is not None:
-        means.update({int(sid): mean[j] for j, sid in enumerate(s_sorted[starts])})
     return out
 
 
@@ -170,8 +153,6 @@ def identify_template(
     reference: ReferenceSet,
     *,
     min_confidence: float = 0.30,
-    order_fill: bool = True,
-    end_order: bool = True,
     extraction: SlitExtraction | None = None,
     previous: Identification | None = None,
 ) -> Identification:
@@ -183,14 +164,8 @@ def identify_template(
     image : (H, W) uint8/uint16, a scan (lasers on); must have the reference's image size
     reference : the prepared :class:`~multislit.identify.reference.ReferenceSet` (see
         :func:`~multislit.identify.reference.prepare_reference`), reused for every scan
-    min_confidence : a segment whose dots give its best slit a confidence (0..1) below this is
-        not labelled by its dots alone; default 0.30
-    order_fill : label segments the dots left unidentified by their place in the rows, where
-        the dot-identified stripes around them agree (confidence at most 0.6), or where the
-        order confirms the dots' own weak vote; default True. False: the dots' evidence only
-    end_order : with ``order_fill``, label the rows left out at a segment's ends (where it may
-        mix with another stripe) or far from its samples where their place in the row gives
-        the segment's slit; default True
+    min_confidence : a segment whose samples' vote gives its best slit a confidence (0..1)
+        below this is left out; default 0.30
     extraction : an extraction of ``image`` already made (skips extracting again); default
         None: extract with the reference's stripe width and dot size
     previous : the :class:`Identification` of the previous frame of a sequence (the same
@@ -226,9 +201,7 @@ def identify_template(
         from multislit.identify.prior import check_previous  # (prior imports this module)
 
         check_previous(previous, reference)
-    options = _Options(
-        min_confidence=min_confidence, order_fill=bool(order_fill), end_order=bool(end_order)
-    )
+    options = _Options(min_confidence=min_confidence)
     return _identify(image, reference, extraction, options, previous)
 
 
@@ -280,17 +253,10 @@ def _identify(
             ex, seg, si, reference, hh, reach, p, previous, _sample_scores
         )
     seg = split_at_winner_changes(seg, ex.v, si, scores, _MIN_SCORE)
-    lut_k, lut_c, dot_votes, dropped = _segment_decisions(seg, si, scores, p.min_confidence)
+    lut_k, lut_c, dropped = _segment_decisions(seg, si, scores, p.min_confidence)
     has = _vouched_points(ex, seg, si, scores, max(step, hh), lut_k, hh)
     slit[has] = lut_k[seg[has]]
     conf[has] = lut_c[seg[has]]
-    _drop_out_of_order(ex, seg, slit, conf, has, lut_k, lut_c, dropped, reference.spacing_px)
-    if p.order_fill:
-        _apply_order_rules(
-            ex, seg, slit, conf, has, lut_k, lut_c, dot_votes, reference.num_slits, p.end_order
-        )
-    slit[_contradicted_by_dots(seg, si, scores, slit)] = -1
-    conf[slit < 0] = 0.0
     n_id = int(np.sum(lut_k >= 0))
     return Identification(
         ex.u, ex.v, slit, conf, seg, ex.peak, ex.width, n_seg, n_id, dropped, "", ex
@@ -390,25 +356,21 @@ def _coarse_to_fine_scores(
 
 def _segment_decisions(
     seg: I64, si: NDArray[np.intp], scores: F64, min_confidence: float
-) -> tuple[I64, F64, dict[int, tuple[int, float, F64]], dict[str, int]]:
+) -> tuple[I64, F64, dict[str, int]]:
     """Accept or drop each segment by its samples' vote.
 
     Returns
     -------
     lut_k, lut_c : (S,) int64 and float64, per segment id its slit (-1: not accepted) and
         confidence
-    dot_votes : per dropped segment with scored samples: (its best slit if dropped only for
-        low confidence, else -1; confidence; (N,) mean score per slit), for the order rules
     dropped : counts of the dropped segments by reason
     """
-    means: dict[int, F64] = {}
-    votes = _segment_votes(seg[si], scores, means)
-    dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0, "order": 0}
-    accepted: dict[int, tuple[int, float]] = {}
-    dot_votes: dict[int, tuple[int, float, F64]] = {}  # of the segments dropped
+    votes = _segment_votes(seg[si], scores)
+    dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0}
+    lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
+    lut_c = np.zeros(int(seg.max()) + 1)
     for sid in np.flatnonzero(np.bincount(seg[seg >= 0])):
         k, c, m1, n = votes.get(int(sid), (-1, 0.0, np.nan, 0))
-        low_confidence = False
         if n < _MIN_SAMPLES:
             dropped["too_short" if n > 0 or int(sid) not in votes else "no_candidate"] += 1
         elif k < 0:
@@ -417,18 +379,9 @@ def _segment_decisions(
             dropped["weak_match"] += 1
         elif c < min_confidence:
             dropped["low_confidence"] += 1
-            low_confidence = True
         else:
-            accepted[int(sid)] = (k, c)
-            continue
-        if int(sid) in means:
-            # not enough alone; the order along the rows may confirm it (fill_by_order)
-            dot_votes[int(sid)] = (k if low_confidence else -1, c, means[int(sid)])
-    lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
-    lut_c = np.zeros(int(seg.max()) + 1)
-    for sid, (k, c) in accepted.items():
-        lut_k[sid], lut_c[sid] = k, c
-    return lut_k, lut_c, dot_votes, dropped
+            lut_k[sid], lut_c[sid] = k, c
+    return lut_k, lut_c, dropped
 
 
 @njit(cache=True)
@@ -473,130 +426,6 @@ def _vouched_points(
     return has
 
 
-def _contradicted_by_dots(
-    seg: I64, si: NDArray[np.intp], scores: F64, slit: I64
-) -> NDArray[np.bool_]:
-    """(K,) bool: the labelled points whose segment's own dots contradict their slit.
-
-    However a segment got a label (its dots, or its place in the rows), its own samples have
-    the last word: where their mean NCC for the label lies below their best slit's by more than
-    ``_VETO_SE`` standard errors of the per-sample difference (plus ``_VETO_TOLERANCE``), the
-    label is left out. Every label a segment carries is checked (a segment with one sample is
-    taken to have a standard error of ``_ONE_SAMPLE_SE``). A segment without samples, or whose
-    dots are undecided, keeps its labels.
-    """
-    out = np.zeros(len(seg), bool)
-    lab = np.flatnonzero((slit >= 0) & (seg >= 0))
-    if lab.size == 0 or len(si) == 0:
-        return out
-    # the (segment, label) pairs (by segment, then label), and for each the samples of its
-    # segment (in their order)
-    n_lab = int(slit[lab].max()) + 1
-    key = seg[lab] * n_lab + slit[lab]
-    present = np.zeros(int(key.max()) + 1, bool)
-    present[key] = True
-    pair_key = np.flatnonzero(present)
-    point_pair = (np.cumsum(present) - 1)[key]
-    pairs = np.c_[pair_key // n_lab, pair_key % n_lab]
-    ss = seg[si]
-    order = group_order(ss)
-    n_per_seg = np.bincount(ss[order], minlength=int(pairs[-1, 0]) + 1)
-    lo = (np.cumsum(n_per_seg) - n_per_seg)[pairs[:, 0]]
-    n = n_per_seg[pairs[:, 0]]
-    has = n > 0
-    if not has.any():
-        return out
-    starts = np.r_[0, np.cumsum(n[has])[:-1]]
-    j = order[np.arange(int(n[has].sum())) + np.repeat(lo[has] - starts, n[has])]
-    X = _filled_rows(scores, j, _NO_CANDIDATE)
-    mean = np.add.reduceat(X, starts, axis=0) / n[has][:, None]
-    dm, se = _mean_difference(X, starts, n[has], np.argmax(mean, axis=1), pairs[has, 1])
-    se = np.where(n[has] > 1, se, _ONE_SAMPLE_SE)  # one sample: no spread to measure
-    bad_pair = np.zeros(len(pairs), bool)
-    bad_pair[np.flatnonzero(has)] = dm > _VETO_SE * se + _VETO_TOLERANCE
-    out[lab] = bad_pair[point_pair]
-    return out
-
-
-def _drop_out_of_order(
-    ex: SlitExtraction,
-    seg: I64,
-    slit: I64,
-    conf: F64,
-    has: NDArray[np.bool_],
-    lut_k: I64,
-    lut_c: F64,
-    dropped: dict[str, int],
-    spacing_px: float,
-) -> None:
-    """Left-to-right order: of each pair of points of two segments side by side in a row
-    (within 1.5 ``spacing_px``) out of slit order, the point of the less confident segment is
-    left out (a segment may keep its other rows: at an object's edge the order breaks in the
-    edge's rows only); a segment left with none of its points is dropped. Updates ``slit``,
-    ``conf``, ``has``, ``lut_k``, ``lut_c`` and ``dropped`` in place."""
-    n_ids = int(seg.max()) + 1
-    before = np.bincount(seg[(slit >= 0) & (seg >= 0)], minlength=n_ids) > 0
-    for _ in range(10):
-        a, b = order_violations(ex.u, ex.v, slit, seg, 1.5 * spacing_px)
-        if a.size == 0:
-            break
-        out = np.where(lut_c[seg[a]] < lut_c[seg[b]], a, b)
-        slit[out] = -1
-        conf[out] = 0.0
-        has[out] = False
-    gone = np.flatnonzero(
-        before & (np.bincount(seg[(slit >= 0) & (seg >= 0)], minlength=n_ids) == 0)
-    )
-    lut_k[gone] = -1
-    lut_c[gone] = 0.0
-    dropped["order"] += int(gone.size)
-
-
-def _apply_order_rules(
-    ex: SlitExtraction,
-    seg: I64,
-    slit: I64,
-    conf: F64,
-    has: NDArray[np.bool_],
-    lut_k: I64,
-    lut_c: F64,
-    dot_votes: dict[int, tuple[int, float, F64]],
-    num_slits: int,
-    end_order: bool,
-) -> None:
-    """The order rules (:mod:`~multislit.identify.order`), in place on ``slit``, ``conf``,
-    ``lut_k`` and ``lut_c``: segments the dots left unidentified take the slit the order along
-    the rows gives (:func:`~.order.fill_by_order`) or confirms
-    (:func:`~.order.confirm_by_neighbours`); with ``end_order`` the rows left out at a
-    segment's ends come back where the order agrees; a point whose place in its row gives
-    another slit than its label is left out."""
-    order = order_labels(ex.u, ex.v, seg, slit, conf, num_slits)
-    filled = fill_by_order(seg, slit, has, order, num_slits, dot_votes, min_score=_MIN_SCORE)
-    for sid, (k, c) in filled.items():
-        lut_k[sid], lut_c[sid] = k, c
-    weak = np.full(len(lut_k), -1, np.int64)
-    for sid, (k, _, _) in dot_votes.items():
-        if lut_k[sid] < 0:
-            weak[sid] = k
-    slit[has] = lut_k[seg[has]]
-    agreed = confirm_by_neighbours(order, seg, slit, weak, has, _NEIGHBOUR_SHARE)
-    for sid, k in agreed.items():
-        lut_k[sid], lut_c[sid] = k, 0.4
-    slit[has] = lut_k[seg[has]]
-    conf[has] = lut_c[seg[has]]
-    if end_order:
-        # rows left out at a segment's ends (or far from its samples) come back where
-        # their place in the row says the segment's slit too
-        back = (seg >= 0) & ~has & (order.between >= 0)
-        back &= order.between == lut_k[np.maximum(seg, 0)]
-        slit[back] = lut_k[seg[back]]
-        conf[back] = lut_c[seg[back]]
-    # a point whose place in its row, within the span of the run's dot-identified
-    # stripes, gives another slit than its label is left out
-    left_out = (slit >= 0) & (order.inside >= 0) & (order.inside != slit)
-    slit[left_out] = -1
-
-
 def compile_kernels() -> None:
     """Compile the identification's Numba kernels now.
 
@@ -604,7 +433,7 @@ def compile_kernels() -> None:
     beside the package, so only the first run after an install pays it. ``make demo`` and
     ``make test`` call this once after installing. It runs :func:`identify` on a small
     synthetic frame (five slits, two flat references), once with dots beside every stripe and
-    once with one stripe's dots missing (so the order fills it), after the reference
+    once with one stripe's dots missing (its templates flat: left out), after the reference
     preparation's patch sampler (:func:`~multislit.identify.patches.compile_kernels`).
     """
     from multislit.identify.patches import compile_kernels as compile_patch_kernels

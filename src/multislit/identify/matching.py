@@ -43,9 +43,9 @@ _TEMPLATE_DOTS = 12.0
 
 @dataclass(frozen=True)
 class _Options:
-    """Settings of the identification: the user's (``min_confidence``, ``order_fill``,
-    ``end_order``, see :func:`~multislit.identify.labelling.identify`) and internal modes that
-    tests and benchmarks vary.
+    """Settings of the identification: the user's (``min_confidence``, see
+    :func:`~multislit.identify.labelling.identify_template`) and internal modes that tests and
+    benchmarks vary.
 
     template_half_width : template half width across the slit, in reference slit spacings
     search_px : the reference patch is also compared at this many px either side of each
@@ -64,8 +64,6 @@ class _Options:
     """
 
     min_confidence: float = 0.30
-    order_fill: bool = True
-    end_order: bool = True
     template_half_width: float = _TEMPLATE_HALF_WIDTH
     search_px: int = 0
     depth_margin: float = math.inf
