@@ -12,8 +12,10 @@
   :mod:`~multislit.identify.geometric`: identification by the dots' geometry (the default):
   the calibrated dot rays predict the dots beside each piece of stripe under each slit; one
   labelling of all pieces;
-- :mod:`~multislit.identify.labelling`: the paper's template matching (``method="template"``):
-  the samples of each segment vote, with a confidence from the vote's margin;
+- :mod:`~multislit.identify.labelling`, :mod:`~multislit.identify.votes`,
+  :mod:`~multislit.identify.prior`: the paper's template matching (``method="template"``): the
+  samples of each segment vote, with a confidence from the vote's margin; in a sequence the
+  previous frame's labels are checked first;
 - :mod:`~multislit.identify.frame`: :func:`identify`, either method on one frame.
 """
 

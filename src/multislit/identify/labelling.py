@@ -11,24 +11,24 @@ never guessed.
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
-from multislit.identify.matching import _Options, score_candidates, template_geometry
+from multislit.identify.matching import score_candidates, template_geometry, template_size
+from multislit.identify.prior import check_previous, scores_with_prior
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import Identification
 from multislit.identify.segments import (
     band_samples,
     by_segment,
-    group_order,
     near_segment_ends,
     split_at_brightness_steps,
     split_at_winner_changes,
 )
+from multislit.identify.votes import MIN_SAMPLES, MIN_SCORE, scored_rows, segment_votes
 from multislit.stripes import SlitExtraction, as_image, extract_slits
 
 F64 = NDArray[np.float64]
@@ -39,113 +39,16 @@ _SAMPLE_STEP = 0.30
 #: Samples are taken only where the template is cut by the image's top or bottom by at most
 #: this fraction of its half height (1: never cut).
 _BORDER_CUT = 1.0
-#: Segments with fewer sample points are dropped (too short to vote).
-_MIN_SAMPLES = 3
-#: A segment's best mean NCC must reach this.
-_MIN_SCORE = 0.15
 #: Rows left out at each end of a segment: the centre there mixes two stripes.
 _TRIM_ROWS = 2
 #: Rows left out next to a junction of two segments of different slits, as a fraction of the
 #: template's half height (at least ``_TRIM_ROWS``).
 _JUNCTION_TEMPLATE = 0.4
-#: Standard error taken for a segment with one sample, whose spread cannot be measured (NCC).
-_ONE_SAMPLE_SE = 0.3
-#: NCC counted for a hypothesis without a candidate (the slit cannot light the sample inside
-#: the measuring volume, or its template would leave the image).
-_NO_CANDIDATE = -0.2
 
 
 def _junction_rows(half_height_px: int) -> int:
     """Rows left out next to a junction of two segments, for a template half height (px)."""
     return max(_TRIM_ROWS, int(math.ceil(_JUNCTION_TEMPLATE * half_height_px)))
-
-
-def _mean_difference(
-    X: F64, starts: NDArray[np.intp], n: NDArray[np.intp], a: I64, b: I64
-) -> tuple[F64, F64]:
-    """Per group of consecutive rows of ``X`` (M, N) (group g: ``n[g]`` rows from
-    ``starts[g]``): the mean of ``X[:, a[g]] - X[:, b[g]]`` over its rows, and the standard
-    error of that mean (from the rows' spread; 0 for a group of one row)."""
-    grp = np.repeat(np.arange(len(starts)), n)
-    rows = np.arange(len(X))
-    d = X[rows, a[grp]] - X[rows, b[grp]]
-    dm = np.add.reduceat(d, starts) / n
-    ss = np.add.reduceat((d - dm[grp]) ** 2, starts)
-    return dm, np.sqrt(ss / np.maximum(n - 1, 1)) / np.sqrt(n)
-
-
-@njit(cache=True)
-def _scored(scores):
-    """(M,) bool: the rows of ``scores`` (M, N) with a finite score (a candidate)."""
-    out = np.zeros(scores.shape[0], np.bool_)
-    for i in range(scores.shape[0]):
-        for j in range(scores.shape[1]):
-            if np.isfinite(scores[i, j]):
-                out[i] = True
-                break
-    return out
-
-
-@njit(cache=True)
-def _filled_rows(scores, rows, fill):
-    """(R, N) float64: the rows ``rows`` (R,) of ``scores`` (M, N), ``fill`` for the scores
-    that are not finite."""
-    out = np.empty((len(rows), scores.shape[1]))
-    for i in range(len(rows)):
-        for j in range(scores.shape[1]):
-            x = scores[rows[i], j]
-            out[i, j] = x if np.isfinite(x) else fill
-    return out
-
-
-def _segment_votes(seg_of_sample: I64, scores: F64) -> dict[int, tuple[int, float, float, int]]:
-    """Per segment: (best slit, confidence, best mean score, number of samples).
-
-    The samples' scores ``scores`` (M, N) are averaged per slit (a hypothesis without a
-    candidate counting ``_NO_CANDIDATE``); the best slit's confidence is its margin over the
-    second best, less the standard error of that margin (from the samples' spread;
-    ``_ONE_SAMPLE_SE`` for one sample), over 0.3, clipped to 0..1.
-    """
-    out: dict[int, tuple[int, float, float, int]] = {}
-    if len(scores) == 0:
-        return out
-    N = scores.shape[1]
-    good = _scored(scores)
-    lo = int(seg_of_sample.min())
-    key = seg_of_sample - lo  # >= 0
-    n_all = np.bincount(key)
-    n_good = np.bincount(key[good], minlength=len(n_all))
-    for sid in np.flatnonzero((n_all > 0) & (n_good == 0)) + lo:
-        out[int(sid)] = (-1, 0.0, np.nan, 0)
-    rows = group_order(np.where(good, key, -1))  # by segment, then as given
-    if rows.size == 0:
-        return out
-    s_sorted = seg_of_sample[rows]
-    starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
-    n = np.diff(np.r_[starts, len(rows)])
-    # a hypothesis without a candidate counts as a bad match
-    Sz = _filled_rows(scores, rows, _NO_CANDIDATE)
-    mean = np.add.reduceat(Sz, starts, axis=0) / n[:, None]  # (G, N)
-    k1 = np.argmax(mean, axis=1)
-    g = np.arange(len(starts))
-    m1 = mean[g, k1]
-    if N > 1:
-        rest = mean.copy()
-        rest[g, k1] = -np.inf
-        k2 = np.argmax(rest, axis=1)
-        m2 = rest[g, k2]
-        _, se = _mean_difference(Sz, starts, n, k1, k2)
-    else:  # one slit: its margin over a score of -1
-        m2 = np.full(len(starts), -1.0)
-        d1 = np.c_[Sz[:, 0] + 1.0, np.zeros(len(Sz))]
-        _, se = _mean_difference(d1, starts, n, np.zeros_like(g), np.ones_like(g))
-    # margin, discounted by its uncertainty (few or disagreeing samples)
-    se = np.where(n > 1, se, _ONE_SAMPLE_SE)
-    margin = np.maximum(0.0, m1 - m2 - se)
-    conf = np.clip(margin / 0.3, 0.0, 1.0)
-    for j, sid in enumerate(s_sorted[starts]):
-        out[int(sid)] = (int(k1[j]), float(conf[j]), float(m1[j]), int(n[j]))
-    return out
 
 
 def identify_template(
@@ -198,21 +101,7 @@ def identify_template(
             "dots' geometry instead"
         )
     if previous is not None:
-        from multislit.identify.prior import check_previous  # (prior imports this module)
-
         check_previous(previous, reference)
-    options = _Options(min_confidence=min_confidence)
-    return _identify(image, reference, extraction, options, previous)
-
-
-def _identify(
-    image: ArrayLike,
-    reference: ReferenceSet,
-    extraction: SlitExtraction | None,
-    p: _Options,
-    previous: Identification | None = None,
-) -> Identification:
-    """:func:`identify` with all its settings in ``p`` (tests and benchmarks vary its modes)."""
     img = as_image(image)
     w, h = reference.image_size
     if img.shape != (h, w):
@@ -242,19 +131,17 @@ def _identify(
             "no slits found in the image",
             ex,
         )
-    seg, si, step, hh = _sampled_segments(ex, reference, p)
+    seg, si, step, hh = _sampled_segments(ex, reference)
+    reach = max(step, hh)
     if previous is None:
-        scores = _sample_scores(ex, seg, si, reference, hh, p)
-    else:  # the previous frame's labels: checked, not searched (prior imports this module)
-        from multislit.identify.prior import scores_with_prior
-
-        reach = max(step, hh)
+        scores = _sample_scores(ex, seg, si, reference, hh)
+    else:  # the previous frame's labels: checked, not searched
         si, scores = scores_with_prior(
-            ex, seg, si, reference, hh, reach, p, previous, _sample_scores
+            ex, seg, si, reference, hh, reach, min_confidence, previous, _sample_scores
         )
-    seg = split_at_winner_changes(seg, ex.v, si, scores, _MIN_SCORE)
-    lut_k, lut_c, dropped = _segment_decisions(seg, si, scores, p.min_confidence)
-    has = _vouched_points(ex, seg, si, scores, max(step, hh), lut_k, hh)
+    seg = split_at_winner_changes(seg, ex.v, si, scores, MIN_SCORE)
+    lut_k, lut_c, dropped = _segment_decisions(seg, si, scores, min_confidence)
+    has = _vouched_points(ex, seg, si, scores, reach, lut_k, hh)
     slit[has] = lut_k[seg[has]]
     conf[has] = lut_c[seg[has]]
     n_id = int(np.sum(lut_k >= 0))
@@ -264,7 +151,7 @@ def _identify(
 
 
 def _sampled_segments(
-    ex: SlitExtraction, reference: ReferenceSet, p: _Options
+    ex: SlitExtraction, reference: ReferenceSet
 ) -> tuple[I64, NDArray[np.intp], float, int]:
     """The extraction's segments split at brightness steps, and where they are sampled.
 
@@ -278,86 +165,27 @@ def _sampled_segments(
     """
     seg = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
     step = max(2.0, _SAMPLE_STEP * reference.spacing_px)
-    hh = p.template_size(reference)[1]
+    hh = template_size(reference)[1]
     h = reference.image_size[1]
     si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
     return seg, si, step, hh
 
 
 def _sample_scores(
-    ex: SlitExtraction,
-    seg: I64,
-    si: NDArray[np.intp],
-    reference: ReferenceSet,
-    hh: int,
-    p: _Options,
+    ex: SlitExtraction, seg: I64, si: NDArray[np.intp], reference: ReferenceSet, hh: int
 ) -> F64:
     """(M, N) NCC of the templates at the sample points ``si`` with each slit's candidates
     (:func:`~.matching.score_candidates`; NaN: no candidate), the templates following their
-    stripes as ``p.follow_stripe`` says (their lean, and the stripes' spacing around them:
-    :func:`~.matching.template_col_scale`), coarse to fine if ``p.coarse_every`` > 1."""
+    stripes' lean and spacing (:func:`~.matching.template_geometry`)."""
+    shift, scale = template_geometry(ex.u, ex.v, seg, si, reference, hh)
     dots = ex.dots.astype(np.float32)
-    shift, scale = template_geometry(ex.u, ex.v, seg, si, reference, hh, p.follow_stripe)
-    if p.coarse_every > 1 and reference.num_slits > p.keep_hypotheses:
-        return _coarse_to_fine_scores(ex, seg, si, dots, shift, scale, reference, p)
-    return score_candidates(
-        reference, dots, ex.u[si], ex.v[si], p, row_shift=shift, col_scale=scale
-    )
-
-
-def _coarse_to_fine_scores(
-    ex: SlitExtraction,
-    seg: I64,
-    si: NDArray[np.intp],
-    dots: NDArray[np.float32],
-    shift: F64 | None,
-    scale: F64 | None,
-    reference: ReferenceSet,
-    p: _Options,
-) -> F64:
-    """:func:`_sample_scores` coarse to fine: every slit on every ``p.coarse_every``-th sample
-    of each segment, then on every sample only the ``p.keep_hypotheses`` slits each segment's
-    coarse samples liked best; the others keep their coarse mean score."""
-    rank = np.zeros(len(si), np.int64)
-    ss = seg[si]
-    first = np.r_[True, ss[1:] != ss[:-1]]
-    start = np.maximum.accumulate(np.where(first, np.arange(len(si)), 0))
-    rank = np.arange(len(si)) - start
-    coarse = rank % p.coarse_every == 0
-    sc = score_candidates(
-        reference,
-        dots,
-        ex.u[si[coarse]],
-        ex.v[si[coarse]],
-        p,
-        row_shift=None if shift is None else shift[coarse],
-        col_scale=None if scale is None else scale[coarse],
-    )
-    allowed = np.zeros((len(si), reference.num_slits), bool)
-    coarse_mean = np.full((len(si), reference.num_slits), np.nan)
-    sc_seg = ss[coarse]
-    for sid in np.unique(sc_seg):
-        rows = sc_seg == sid
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a slit without candidates
-            mean = np.nanmean(sc[rows], axis=0)
-        ranked = np.where(np.isfinite(mean), mean, -np.inf)
-        top = np.argsort(ranked)[::-1][: p.keep_hypotheses]
-        members = np.flatnonzero(ss == sid)
-        allowed[np.ix_(members, top)] = True
-        coarse_mean[members] = mean
-    scores = score_candidates(reference, dots, ex.u[si], ex.v[si], p, allowed, shift, scale)
-    # the slits not kept still count in the vote, with their coarse mean score: the margin
-    # to the runner-up must not grow just because the runner-up was not scored again
-    fill = ~allowed & np.isfinite(coarse_mean)
-    scores[fill] = coarse_mean[fill]
-    return scores
+    return score_candidates(reference, dots, ex.u[si], ex.v[si], shift, scale)
 
 
 def _segment_decisions(
     seg: I64, si: NDArray[np.intp], scores: F64, min_confidence: float
 ) -> tuple[I64, F64, dict[str, int]]:
-    """Accept or drop each segment by its samples' vote.
+    """Accept or drop each segment by its samples' vote (:func:`~.votes.segment_votes`).
 
     Returns
     -------
@@ -365,17 +193,17 @@ def _segment_decisions(
         confidence
     dropped : counts of the dropped segments by reason
     """
-    votes = _segment_votes(seg[si], scores)
+    votes = segment_votes(seg[si], scores)
     dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0}
     lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
     lut_c = np.zeros(int(seg.max()) + 1)
     for sid in np.flatnonzero(np.bincount(seg[seg >= 0])):
         k, c, m1, n = votes.get(int(sid), (-1, 0.0, np.nan, 0))
-        if n < _MIN_SAMPLES:
+        if n < MIN_SAMPLES:
             dropped["too_short" if n > 0 or int(sid) not in votes else "no_candidate"] += 1
         elif k < 0:
             dropped["no_candidate"] += 1
-        elif m1 < _MIN_SCORE:
+        elif m1 < MIN_SCORE:
             dropped["weak_match"] += 1
         elif c < min_confidence:
             dropped["low_confidence"] += 1
@@ -418,7 +246,7 @@ def _vouched_points(
     surface or slit, the centre mixes two stripes; :func:`~.segments.near_segment_ends`)."""
     has = seg >= 0
     usable = np.zeros(len(seg), bool)
-    usable[si[_scored(scores)]] = True
+    usable[si[scored_rows(scores)]] = True
     reach = _rows_to_sample(by_segment(seg, ex.v), seg, ex.v.astype(np.float64), usable)
     has &= reach <= max_reach
     if has.any():
