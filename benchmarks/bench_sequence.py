@@ -1,12 +1,15 @@
 """Identification of a sequence of frames with and without the previous frame's prior.
 
+The prior is the template method's (:func:`multislit.identify.identify_template`, ``method=
+"template"``); the identification by the dots' geometry scores every slit of every frame.
+
 The simulator renders a sphere and a box moving 4 mm per frame across the default rig's
 field (1280x1024 px, 25 slits) in front of a wall (:func:`multislit.sim.simulate_sequence`,
 30 frames, seed 0). The reference is prepared once. Every frame is extracted once; its
-identification is timed twice, ``identify(image, reference, extraction=...)`` (the full
-search) and ``identify(..., previous=...)`` with the identification the prior made of the
-frame before (the chain a camera stream runs; the first frame has no previous and is
-searched in full both ways). One ``cv2.medianBlur`` (5x5) pass over the same frame is timed
+identification is timed twice, ``identify_template(image, reference, extraction=...)`` (the
+full search) and ``identify_template(..., previous=...)`` with the identification the prior
+made of the frame before (the chain a camera stream runs; the first frame has no previous and
+is searched in full both ways). One ``cv2.medianBlur`` (5x5) pass over the same frame is timed
 next to each: the ratio identification / medianBlur holds better than ms on a busy machine.
 
 Reported: ms per frame of identification (median and range over the frames after the first,
@@ -40,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_speed import median_blur_s, on_one_thread  # noqa: E402
 from results import command_line, write_section  # noqa: E402
 
-from multislit.identify import identify, prepare_reference  # noqa: E402
+from multislit.identify import identify_template, prepare_reference  # noqa: E402
 from multislit.sim import RigSpec, object_metrics, simulate_sequence  # noqa: E402
 from multislit.stripes import extract_slits  # noqa: E402
 
@@ -86,9 +89,8 @@ def run(frames: int, repeat: int) -> dict:
     ex0 = extract_slits(
         seq.images[0], stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px
     )
-    identify(
-        seq.images[0], ref, extraction=ex0, previous=identify(seq.images[0], ref, extraction=ex0)
-    )
+    first = identify_template(seq.images[0], ref, extraction=ex0)
+    identify_template(seq.images[0], ref, extraction=ex0, previous=first)
     rows, idents = [], {w: [] for w in WAYS}
     prev = None
     for f, img in enumerate(seq.images):
@@ -97,8 +99,10 @@ def run(frames: int, repeat: int) -> dict:
         ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
         t_ex = time.perf_counter() - t0
         full, pri, t_full, t_pri = timed_pair(
-            lambda img=img, ex=ex: identify(img, ref, extraction=ex),
-            lambda img=img, ex=ex, prev=prev: identify(img, ref, extraction=ex, previous=prev),
+            lambda img=img, ex=ex: identify_template(img, ref, extraction=ex),
+            lambda img=img, ex=ex, prev=prev: identify_template(
+                img, ref, extraction=ex, previous=prev
+            ),
             repeat,
         )
         prev = pri

@@ -1,26 +1,29 @@
 """Single-shot pipeline speed per frame at full size (1280x1024), one core.
 
-Stages timed per frame, from the image array to 3D points: slit/dot extraction,
-identification, centre refinement (what ``scan_image`` does by default), triangulation. The
-slit planes and camera for triangulation are the simulator's true models (the timing does not
-depend on their values). The floor a frame cannot beat is one ``cv2.medianBlur`` (5x5) pass
-over the same frame, timed in the same run next to each frame: the ratio total / medianBlur is
-the figure that holds on a busy machine, where absolute times are not.
+The default pipeline (``scan_image`` with the default options) timed per frame, stage by stage
+as it runs them, from the image array to 3D points: slit/dot extraction, identification by the
+dots' geometry, centre refinement, triangulation. Each simulated capture is calibrated first
+(``calibrate_capture``: the camera, the slit planes and the dot projector the geometry needs;
+not timed), and the staged frame is checked to give the points ``scan_image`` gives. Beside
+it, not in the total, the paper's template identification (``method="template"``) of the same
+frame from the same extraction. The floor a frame cannot beat is one ``cv2.medianBlur`` (5x5)
+pass over the same frame, timed in the same run next to each frame: the ratio total /
+medianBlur is the figure that holds on a busy machine, where absolute times are not.
 
 Reported per rig (25 and 49 slits): the median over ``--repeat`` runs of each scan (scenes
-``holes`` and ``steps``) of the ms per stage, the total, the medianBlur ms, the ratio, points
-per second, and the peak memory of one frame; the time to prepare the reference
-(``prepare_reference`` on the capture's reference images, once per rig).
+``holes`` and ``steps``) of the ms per stage, the total, the template identification, the
+medianBlur ms, the ratio, points per second, and the peak memory of one frame; the time to
+prepare the reference (``prepare_reference`` on the capture's reference images, once per rig).
 
 Memory: "peak MB" is tracemalloc's peak of the Python and NumPy allocations during one frame
-(arrays made by OpenCV's Python bindings and the compiled kernels' work arrays included,
+of the pipeline (arrays made by OpenCV's Python bindings and the compiled kernels' work arrays included,
 OpenCV's internal buffers not), measured in a separate, untimed run; "max RSS" is the
 process's resident-set high-water mark at the end (``resource.getrusage``: interpreter,
 libraries, the simulated captures and the reference included).
 
 Where the time goes: the functions that take the most time of their own (cProfile's
 tottime, ms per frame; a compiled kernel counts as one function, OpenCV calls by name) over one
-more run of every scan, profiled apart from the timed runs.
+more run of the pipeline on every scan, profiled apart from the timed runs.
 
 Compiled kernels (Numba) are loaded or compiled before timing: every frame runs once,
 untimed, first.
@@ -35,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import json
 import os
 import pstats
 import resource
@@ -54,32 +56,40 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results import command_line, write_section  # noqa: E402
 
-from multislit.geometry import PinholeCamera  # noqa: E402
-from multislit.identify import identify, prepare_reference  # noqa: E402
+from multislit.calibrate import calibrate_capture  # noqa: E402
+from multislit.identify import IdentifyOptions, identify, prepare_reference  # noqa: E402
 from multislit.io import Capture  # noqa: E402
-from multislit.reconstruct import triangulate  # noqa: E402
+from multislit.reconstruct import rig_of, scan_image, triangulate  # noqa: E402
 from multislit.sim import RigSpec, simulate_capture  # noqa: E402
 from multislit.stripes import extract_slits, refine_centres  # noqa: E402
 
 STAGES = ("extract", "identify", "refine", "triangulate")
+#: Timed beside the pipeline, not in its total: the template identification of the same frame.
+TEMPLATE = "template_identify"
 GOALS_MS = {25: 16.0, 49: 33.0}  # the camera-rate goals per frame, one core
 GOAL_PASSES = 8  # the goal in medianBlur passes at 25 slits
 TOP = 10  # functions listed in the profile
 
 
-def frame(img, ref, cam, planes) -> tuple[list[float], int]:
-    """One frame through the pipeline: the seconds of each stage and the valid 3D points."""
+def frame(img, ref, cal, rig, template: bool = True) -> tuple[list[float], int]:
+    """One frame through the default pipeline, stage by stage as ``scan_image`` runs them (the
+    default options): the seconds of each stage, then of the template identification of the
+    same extraction (not a stage; 0 without ``template``), and the valid 3D points."""
     t0 = time.perf_counter()
     ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
     t1 = time.perf_counter()
-    ident = identify(img, ref, extraction=ex)
+    ident = identify(img, ref, rig, extraction=ex)
     t2 = time.perf_counter()
     u, _ = refine_centres(img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px)
     t3 = time.perf_counter()
     ok = ident.identified
-    _, valid = triangulate(cam, planes, np.c_[u[ok], ident.v[ok]], ident.slit[ok])
+    planes = cal.slit_planes.planes
+    _, valid = triangulate(cal.camera, planes, np.c_[u[ok], ident.v[ok]], ident.slit[ok])
     t4 = time.perf_counter()
-    return [t1 - t0, t2 - t1, t3 - t2, t4 - t3], int(valid.sum())
+    if template:
+        identify(img, ref, options=IdentifyOptions(method="template"), extraction=ex)
+    t5 = time.perf_counter()
+    return [t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4], int(valid.sum())
 
 
 def median_blur_s(img: np.ndarray, passes: int = 3) -> float:
@@ -104,30 +114,42 @@ def run(num_slits: int, repeat: int, workdir: Path) -> tuple[list[dict], dict]:
         t0 = time.perf_counter()
         ref = prepare_reference(refs, cap.num_slits)
         prep.append(time.perf_counter() - t0)
-    models = json.loads((cap_dir / "truth" / "models.json").read_text())
-    cam = PinholeCamera.from_dict(models["camera"])
-    planes = np.array(models["projector"]["planes"])
+    t0 = time.perf_counter()
+    cal = calibrate_capture(cap).calibration
+    calibrate_s = time.perf_counter() - t0
+    rig = rig_of(cal)
     images = {p.stem: cap.image(p) for p in cap.scans}
     # warm-up, untimed in the table: caches built on the reference, compiled kernels loaded
-    first = [sum(frame(img, ref, cam, planes)[0]) for img in images.values()][0]
+    first = None
+    for name, img in images.items():
+        s, npts = frame(img, ref, cal, rig)
+        first = sum(s[: len(STAGES)]) if first is None else first
+        want = len(scan_image(img, ref, cal).points)
+        if npts != want:
+            raise SystemExit(
+                f"{num_slits} slits, {name}: the staged frame gives {npts} points but "
+                f"scan_image {want}: the stages timed here are not scan_image's"
+            )
     rows = []
     for name, img in images.items():
         stage, blur, npts = [], [], 0
         for _ in range(repeat):
             blur.append(median_blur_s(img))
-            s, npts = frame(img, ref, cam, planes)
+            s, npts = frame(img, ref, cal, rig)
             stage.append(s)
         tracemalloc.start()
         tracemalloc.reset_peak()
         base = tracemalloc.get_traced_memory()[0]
-        frame(img, ref, cam, planes)
+        frame(img, ref, cal, rig, template=False)
         peak = tracemalloc.get_traced_memory()[1] - base
         tracemalloc.stop()
         st = np.array(stage)
-        total = float(np.median(st.sum(axis=1)))
+        total = float(np.median(st[:, : len(STAGES)].sum(axis=1)))
         mb = statistics.median(blur)
         row = {"slits": num_slits, "scene": name, "points": npts, "median_blur_ms": 1e3 * mb}
-        row.update({f"{k}_ms": 1e3 * float(np.median(st[:, i])) for i, k in enumerate(STAGES)})
+        row.update(
+            {f"{k}_ms": 1e3 * float(np.median(st[:, i])) for i, k in enumerate((*STAGES, TEMPLATE))}
+        )
         row.update(
             total_ms=1e3 * total,
             ratio=total / mb,
@@ -138,10 +160,16 @@ def run(num_slits: int, repeat: int, workdir: Path) -> tuple[list[dict], dict]:
     prof = cProfile.Profile()
     prof.enable()
     for img in images.values():
-        frame(img, ref, cam, planes)
+        frame(img, ref, cal, rig, template=False)
     prof.disable()
     top = hot_spots(pstats.Stats(prof), len(images))
-    return rows, {"slits": num_slits, "prepare_s": prep, "first_s": first, "top": top}
+    return rows, {
+        "slits": num_slits,
+        "prepare_s": prep,
+        "calibrate_s": calibrate_s,
+        "first_s": first,
+        "top": top,
+    }
 
 
 def hot_spots(stats: pstats.Stats, frames: int) -> list[tuple[str, float]]:
@@ -166,24 +194,29 @@ _ONE_THREAD = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NU
 def table(rows: list[dict], preps: list[dict]) -> str:
     lines = [
         "| slits | scene | points | medianBlur ms | extract ms | identify ms | refine ms "
-        "| triangulate ms | total ms | x medianBlur | points/s | peak MB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| triangulate ms | total ms | x medianBlur | points/s | peak MB "
+        "| template identify ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['slits']} | {r['scene']} | {r['points']} | {r['median_blur_ms']:.2f} "
             f"| {r['extract_ms']:.1f} | {r['identify_ms']:.1f} | {r['refine_ms']:.1f} "
             f"| {r['triangulate_ms']:.1f} | {r['total_ms']:.1f} | {r['ratio']:.0f} "
-            f"| {r['points_per_s']:.0f} | {r['peak_mb']:.0f} |"
+            f"| {r['points_per_s']:.0f} | {r['peak_mb']:.0f} | {r[f'{TEMPLATE}_ms']:.1f} |"
         )
     lines.append("")
-    lines.append("Per stage, in medianBlur passes of the same frame (median over the scans):")
+    lines.append(
+        "Per stage, in medianBlur passes of the same frame (median over the scans; the "
+        "template identification beside the pipeline, not in it):"
+    )
     lines.append("")
     for n in sorted({r["slits"] for r in rows}):
         rs = [r for r in rows if r["slits"] == n]
         parts = ", ".join(
-            f"{k} {statistics.median(r[f'{k}_ms'] / r['median_blur_ms'] for r in rs):.1f}"
-            for k in STAGES
+            f"{k.replace('_', ' ')} "
+            f"{statistics.median(r[f'{k}_ms'] / r['median_blur_ms'] for r in rs):.1f}"
+            for k in (*STAGES, TEMPLATE)
         )
         lines.append(f"- {n} slits: {parts}")
     lines.append("")
@@ -208,7 +241,8 @@ def table(rows: list[dict], preps: list[dict]) -> str:
         lines.append(
             f"Reference preparation (`prepare_reference`, {p['slits']} slits): "
             f"{min(s):.2f}-{max(s):.2f} s over {len(s)} runs; the first frame after it "
-            f"(caches built on the reference, compiled kernels loaded) {1e3 * p['first_s']:.0f} ms."
+            f"(caches built on the reference, compiled kernels loaded) {1e3 * p['first_s']:.0f} ms; "
+            f"calibration (`calibrate_capture`, not timed in the frames) {p['calibrate_s']:.0f} s."
         )
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     lines.append(f"\nProcess max RSS at the end: {rss:.0f} MB.")
@@ -251,9 +285,12 @@ def main() -> None:
     print(text)
     if args.write:
         note = (
-            "OpenCV, BLAS and Numba on one thread; medians over the runs of each frame; "
-            '"refine" is the centre refinement `scan_image` runs by default; "peak MB" is '
-            "tracemalloc's peak of the Python/NumPy allocations in one frame.\n\n"
+            "OpenCV, BLAS and Numba on one thread; medians over the runs of each frame; the "
+            "pipeline is `scan_image`'s with the default options (identification by the dots' "
+            'geometry); "refine" is its centre refinement; "template identify" is the '
+            "paper's template identification of the same frame, beside the pipeline, not in its "
+            'total; "peak MB" is tracemalloc\'s peak of the Python/NumPy allocations in one '
+            "frame of the pipeline.\n\n"
         )
         write_section(
             "bench_speed",

@@ -7,8 +7,8 @@ import pytest
 
 from multislit.calibrate import calibrate_capture
 from multislit.calibrate.camera import rms
+from multislit.calibrate.row_order import OrderParams, row_runs, run_offsets
 from multislit.calibrate.slit_labels import label_by_order
-from multislit.identify import OrderParams, row_runs, run_offsets
 from multislit.io import Capture
 
 from .test_calibrate import truth_triangulation

@@ -1,4 +1,5 @@
-"""The compiled kernels of the identification's labelling against straightforward NumPy."""
+"""The compiled kernels of the template labelling and the calibration's row order against
+straightforward NumPy."""
 
 import warnings
 
@@ -6,15 +7,8 @@ import numpy as np
 import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 
+from multislit.calibrate.row_order import OrderParams, by_row, row_runs, run_offsets
 from multislit.identify.labelling import _rows_to_sample
-from multislit.identify.order import (
-    OrderParams,
-    _run_votes,
-    by_row,
-    order_violations,
-    row_runs,
-    run_offsets,
-)
 from multislit.identify.segments import (
     _rolling_median,
     by_segment,
@@ -164,28 +158,6 @@ def test_run_offsets_equal_numpy():
     assert (got != np.iinfo(np.intp).min).sum() > 20
 
 
-def test_run_votes_equal_a_loop():
-    rng = np.random.default_rng(6)
-    u, v, seg = _rows(rng)
-    run, rank = row_runs(u, v, seg >= 0, OrderParams())
-    voted = (rng.random(len(u)) < 0.4) & (run >= 0)
-    n_runs = int(run.max()) + 1
-    n_segs, lo, hi, left, right = _run_votes(run, rank, seg, voted, n_runs)
-    for g in range(n_runs):
-        mine = np.flatnonzero(run == g)
-        vs = mine[voted[mine]]
-        assert n_segs[g] == len(np.unique(seg[vs]))
-        assert (lo[g], hi[g]) == (
-            (rank[vs].min(), rank[vs].max()) if vs.size else (np.iinfo(np.intp).max, -1)
-        )
-        for i in mine:
-            before = vs[rank[vs] < rank[i]]
-            after = vs[rank[vs] >= rank[i]]
-            assert left[i] == (before[np.argmax(rank[before])] if before.size else -1)
-            assert right[i] == (after[np.argmin(rank[after])] if after.size else -1)
-    assert np.all(left[run < 0] == -1) and np.all(right[run < 0] == -1)
-
-
 def test_rows_to_sample_equal_brute_force():
     rng = np.random.default_rng(7)
     seg = rng.integers(-1, 15, 800)
@@ -196,23 +168,3 @@ def test_rows_to_sample_equal_brute_force():
         s = np.flatnonzero(sample & (seg == seg[i]))
         want = np.min(np.abs(v[s] - v[i])) if seg[i] >= 0 and s.size else np.inf
         assert got[i] == want
-
-
-def test_order_violations_equal_lexsort():
-    rng = np.random.default_rng(8)
-    u, v, seg = _rows(rng)
-    v = v + rng.uniform(-0.3, 0.3, v.size)
-    slit = np.where(rng.random(u.size) < 0.8, rng.integers(0, 12, u.size), -1)
-    a, b = order_violations(u, v, slit, seg, 10.0)
-    m = np.flatnonzero(slit >= 0)
-    row = np.round(v[m]).astype(np.int64)
-    o = np.lexsort((u[m], row))
-    idx, row = m[o], row[o]
-    bad = np.flatnonzero(
-        (row[1:] == row[:-1])
-        & (np.diff(u[idx]) < 10.0)
-        & (slit[idx][1:] <= slit[idx][:-1])
-        & (seg[idx][1:] != seg[idx][:-1])
-    )
-    assert bad.size > 0
-    assert np.array_equal(a, idx[bad]) and np.array_equal(b, idx[bad + 1])

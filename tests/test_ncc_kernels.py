@@ -9,9 +9,9 @@ import pytest
 
 from multislit.identify import curve_du, curve_u, normalise_patches, sample_patches
 from multislit.identify.matching import (
+    _fast_cells,
     _nearest_candidates,
     _sorted_positions,
-    _split_candidates,
 )
 from multislit.identify.patches import (
     _remap_patches,
@@ -153,15 +153,18 @@ def test_intersections_equal_numpy_newton(rng):
     assert np.array_equal(got, _numpy_newton(lv, cv, v0[0], 20, 0.0), equal_nan=True)
 
 
-def test_split_candidates_equal_numpy_masks_and_cells(rng):
+def test_fast_cells_equal_numpy_cells(rng):
     M, K, hw, hh, w, h = 40, 7, 3, 5, 60, 50
     ws, hs = w - 2 * hw, h - 2 * hh
-    cu = rng.uniform(-5, w + 5, (M, K))
-    cv = rng.uniform(-5, h + 5, (M, K))
+    # candidates lie inside the image (where the template fits), or are missing (NaN)
+    cu = rng.uniform(hw, w - 1 - hw, (M, K))
+    cv = rng.uniform(hh, h - 1 - hh, (M, K))
     cu[0, :3] = [hw, w - 1 - hw, np.nan]  # the last cells: n - 2, fraction 1
-    cv[0, :3] = [h - 1 - hh, hh, 10.0]
+    cv[0, :3] = [h - 1 - hh, hh, np.nan]
     rr = rng.integers(0, 3, (M, K))
-    ok = rng.random((M, K)) < 0.8
+    ok = (rng.random((M, K)) < 0.8) & np.isfinite(cu)
+    ok[0, :2] = True
+    cu[~ok & (rng.random((M, K)) < 0.5)] = np.nan
     r_f = np.empty((M, K), np.intp)
     cells = (
         np.empty((M, K), np.intp),
@@ -169,16 +172,12 @@ def test_split_candidates_equal_numpy_masks_and_cells(rng):
         np.empty((M, K)),
         np.empty((M, K)),
     )
-    fast, direct = np.empty((M, K), bool), np.empty((M, K), bool)
-    n_max = _split_candidates(cu, cv, rr, ok, hw, hh, w, h, ws, hs, r_f, cells, fast, direct)
-    with np.errstate(invalid="ignore"):
-        inside = (cu >= hw) & (cu <= w - 1 - hw) & (cv >= hh) & (cv <= h - 1 - hh)
-    assert np.array_equal(fast, ok & inside) and np.array_equal(direct, ok & ~inside)
-    assert n_max == (ok & inside).sum(axis=1).max() and fast[0, 0] and fast[0, 1]
-    assert np.array_equal(r_f, np.where(fast, rr, 0))
+    n_max = _fast_cells(cu, cv, rr, ok, hw, hh, ws, hs, r_f, cells)
+    assert n_max == ok.sum(axis=1).max()
+    assert np.array_equal(r_f, np.where(ok, rr, 0))
     for x, n, c, f in (
-        (np.where(fast, cu, hw) - hw, ws, *cells[::2]),
-        (np.where(fast, cv, hh) - hh, hs, *cells[1::2]),
+        (np.where(ok, cu, hw) - hw, ws, *cells[::2]),
+        (np.where(ok, cv, hh) - hh, hs, *cells[1::2]),
     ):
         want = np.minimum(np.floor(x), n - 2).astype(np.intp)
         assert np.array_equal(c, want) and np.array_equal(f, x - want)

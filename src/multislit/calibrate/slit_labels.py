@@ -33,16 +33,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.calibrate.capture_camera import camera_from_capture
+from multislit.calibrate.row_order import OrderParams, apply_run_offsets, row_runs, run_offsets
 from multislit.calibrate.slit_points import EXTRACT_OPTIONS, points_on_faces, transfer_labels
 from multislit.geometry.camera import F64
-from multislit.identify import (
-    OrderParams,
-    apply_run_offsets,
-    capture_reference,
-    identify_template,
-    row_runs,
-    run_offsets,
-)
+from multislit.identify import capture_reference, identify_template
 from multislit.io import Capture
 from multislit.stripes import extract_slits
 
@@ -79,8 +73,8 @@ def _nearest_in_row(u_from: F64, v_from: F64, u: F64, v: F64, tol_px: float) -> 
 def _identification(image: NDArray, cap: Capture, reference: Any) -> Any:
     if reference is None:
         reference = capture_reference(cap)
-    # the anchors must be the dots' own evidence, not identification's order fill
-    return identify_template(image, reference, order_fill=False)
+    # the anchors: the dots' own evidence (the template matching's segment votes)
+    return identify_template(image, reference)
 
 
 def _faces(cap: Capture, uv: F64, camera: Any) -> NDArray[np.intp]:
@@ -111,7 +105,7 @@ def label_by_order(
     identification : an :class:`~multislit.identify.Identification` of ``image`` (default: made
         here from the capture's references, or from ``reference``)
     reference : a prepared :class:`~multislit.identify.ReferenceSet` (default: prepared here)
-    params : :class:`~multislit.identify.OrderParams` (default ``OrderParams()``)
+    params : :class:`~multislit.calibrate.row_order.OrderParams` (default ``OrderParams()``)
 
     Returns
     -------

@@ -7,14 +7,15 @@
 - :mod:`~multislit.identify.matching`: scan dot templates matched with the references along
   the epipolar lines (normalised cross-correlation);
 - :mod:`~multislit.identify.segments`: the stripe segments' points, samples, ends and splits;
-- :mod:`~multislit.identify.order`: the slits' left-to-right order along the image rows;
 - :mod:`~multislit.identify.rig`, :mod:`~multislit.identify.evidence`,
   :mod:`~multislit.identify.pieces`, :mod:`~multislit.identify.graph`,
   :mod:`~multislit.identify.geometric`: identification by the dots' geometry (the default):
   the calibrated dot rays predict the dots beside each piece of stripe under each slit; one
   labelling of all pieces;
-- :mod:`~multislit.identify.labelling`: the paper's template matching (``method="template"``):
-  votes per segment, confidence, order rules;
+- :mod:`~multislit.identify.labelling`, :mod:`~multislit.identify.votes`,
+  :mod:`~multislit.identify.prior`: the paper's template matching (``method="template"``): the
+  samples of each segment vote, with a confidence from the vote's margin; in a sequence the
+  previous frame's labels are checked first;
 - :mod:`~multislit.identify.frame`: :func:`identify`, either method on one frame.
 """
 
@@ -22,7 +23,6 @@ from multislit.identify.frame import identify
 from multislit.identify.labelling import compile_kernels, identify_template
 from multislit.identify.matching import prepare_scoring, template_size
 from multislit.identify.options import METHODS, IdentifyOptions
-from multislit.identify.order import OrderParams, apply_run_offsets, row_runs, run_offsets
 from multislit.identify.patches import (
     WINDOW_SUMS,
     bilinear_ncc,
@@ -55,9 +55,6 @@ __all__ = [
     "RigGeometry",
     "rig_geometry",
     "identify_template",
-    "row_runs",
-    "run_offsets",
-    "apply_run_offsets",
     "identify",
     "Identification",
     "prepare_reference",
@@ -66,7 +63,6 @@ __all__ = [
     "template_size",
     "prepare_scoring",
     "split_at_brightness_steps",
-    "OrderParams",
     "CURVE_DEGREE",
     "curve_u",
     "curve_du",

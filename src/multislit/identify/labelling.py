@@ -1,41 +1,34 @@
-"""Slit address identification (paper section 4.2, Fig. 12-13).
+"""Slit address identification by template matching (paper section 4.2, Fig. 12-13).
 
 The dot templates of sample points on each slit segment of a scan are matched with the
-reference dot images (:mod:`~multislit.identify.matching`). The samples of a segment vote; the
-margin between the best and the second-best slit gives a confidence; the left-to-right order
-of neighbouring segments is checked, and the order along the rows labels segments the dots
-left unsure (:mod:`~multislit.identify.order`). Last, a label that the segment's own dots
-contradict is left out. A segment that cannot be identified with confidence is dropped and
-counted, never guessed.
+reference dot images where the sample's epipolar line meets each slit's reference curve
+(:mod:`~multislit.identify.matching`). The samples of a segment vote: the slit with the best
+mean NCC wins, and the margin to the second-best slit, less its standard error, gives the
+confidence. A segment whose vote is too short, too weak or too unsure is dropped and counted,
+never guessed.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
-from multislit.identify.matching import _Options, score_candidates, template_geometry
-from multislit.identify.order import (
-    confirm_by_neighbours,
-    fill_by_order,
-    order_labels,
-    order_violations,
-)
+from multislit.identify.matching import score_candidates, template_geometry, template_size
+from multislit.identify.prior import check_previous, scores_with_prior
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import Identification
 from multislit.identify.segments import (
     band_samples,
     by_segment,
-    group_order,
     near_segment_ends,
     split_at_brightness_steps,
     split_at_winner_changes,
 )
+from multislit.identify.votes import MIN_SAMPLES, MIN_SCORE, scored_rows, segment_votes
 from multislit.stripes import SlitExtraction, as_image, extract_slits
 
 F64 = NDArray[np.float64]
@@ -46,28 +39,11 @@ _SAMPLE_STEP = 0.30
 #: Samples are taken only where the template is cut by the image's top or bottom by at most
 #: this fraction of its half height (1: never cut).
 _BORDER_CUT = 1.0
-#: Segments with fewer sample points are dropped (too short to vote).
-_MIN_SAMPLES = 3
-#: A segment's best mean NCC must reach this.
-_MIN_SCORE = 0.15
 #: Rows left out at each end of a segment: the centre there mixes two stripes.
 _TRIM_ROWS = 2
 #: Rows left out next to a junction of two segments of different slits, as a fraction of the
 #: template's half height (at least ``_TRIM_ROWS``).
 _JUNCTION_TEMPLATE = 0.4
-#: A segment the dots were too unsure of takes their best slit where its neighbours in the rows
-#: confirm it on at least this share of its points (:func:`~.order.confirm_by_neighbours`).
-_NEIGHBOUR_SHARE = 0.5
-#: A segment's label is left out where its own samples' mean NCC for it lies below their best
-#: slit's by more than this many standard errors (of the per-sample difference) ...
-_VETO_SE = 2.0
-#: ... plus this much NCC.
-_VETO_TOLERANCE = 0.02
-#: Standard error taken for a segment with one sample, whose spread cannot be measured (NCC).
-_ONE_SAMPLE_SE = 0.3
-#: NCC counted for a hypothesis without a candidate (the slit cannot light the sample inside
-#: the measuring volume, or its template would leave the image).
-_NO_CANDIDATE = -0.2
 
 
 def _junction_rows(half_height_px: int) -> int:
@@ -75,103 +51,11 @@ def _junction_rows(half_height_px: int) -> int:
     return max(_TRIM_ROWS, int(math.ceil(_JUNCTION_TEMPLATE * half_height_px)))
 
 
-def _mean_difference(
-    X: F64, starts: NDArray[np.intp], n: NDArray[np.intp], a: I64, b: I64
-) -> tuple[F64, F64]:
-    """Per group of consecutive rows of ``X`` (M, N) (group g: ``n[g]`` rows from
-    ``starts[g]``): the mean of ``X[:, a[g]] - X[:, b[g]]`` over its rows, and the standard
-    error of that mean (from the rows' spread; 0 for a group of one row)."""
-    grp = np.repeat(np.arange(len(starts)), n)
-    rows = np.arange(len(X))
-    d = X[rows, a[grp]] - X[rows, b[grp]]
-    dm = np.add.reduceat(d, starts) / n
-    ss = np.add.reduceat((d - dm[grp]) ** 2, starts)
-    return dm, np.sqrt(ss / np.maximum(n - 1, 1)) / np.sqrt(n)
-
-
-@njit(cache=True)
-def _scored(scores):
-    """(M,) bool: the rows of ``scores`` (M, N) with a finite score (a candidate)."""
-    out = np.zeros(scores.shape[0], np.bool_)
-    for i in range(scores.shape[0]):
-        for j in range(scores.shape[1]):
-            if np.isfinite(scores[i, j]):
-                out[i] = True
-                break
-    return out
-
-
-@njit(cache=True)
-def _filled_rows(scores, rows, fill):
-    """(R, N) float64: the rows ``rows`` (R,) of ``scores`` (M, N), ``fill`` for the scores
-    that are not finite."""
-    out = np.empty((len(rows), scores.shape[1]))
-    for i in range(len(rows)):
-        for j in range(scores.shape[1]):
-            x = scores[rows[i], j]
-            out[i, j] = x if np.isfinite(x) else fill
-    return out
-
-
-def _segment_votes(
-    seg_of_sample: I64, scores: F64, means: dict | None = None
-) -> dict[int, tuple[int, float, float, int]]:
-    """Per segment: (best slit, confidence, best mean score, number of samples).
-
-    ``means``, if given, receives per segment with samples its (N,) mean score per slit (a
-    hypothesis without a candidate counting -0.2).
-    """
-    out: dict[int, tuple[int, float, float, int]] = {}
-    if len(scores) == 0:
-        return out
-    N = scores.shape[1]
-    good = _scored(scores)
-    lo = int(seg_of_sample.min())
-    key = seg_of_sample - lo  # >= 0
-    n_all = np.bincount(key)
-    n_good = np.bincount(key[good], minlength=len(n_all))
-    for sid in np.flatnonzero((n_all > 0) & (n_good == 0)) + lo:
-        out[int(sid)] = (-1, 0.0, np.nan, 0)
-    rows = group_order(np.where(good, key, -1))  # by segment, then as given
-    if rows.size == 0:
-        return out
-    s_sorted = seg_of_sample[rows]
-    starts = np.flatnonzero(np.r_[True, s_sorted[1:] != s_sorted[:-1]])
-    n = np.diff(np.r_[starts, len(rows)])
-    # a hypothesis without a candidate counts as a bad match
-    Sz = _filled_rows(scores, rows, _NO_CANDIDATE)
-    mean = np.add.reduceat(Sz, starts, axis=0) / n[:, None]  # (G, N)
-    k1 = np.argmax(mean, axis=1)
-    g = np.arange(len(starts))
-    m1 = mean[g, k1]
-    if N > 1:
-        rest = mean.copy()
-        rest[g, k1] = -np.inf
-        k2 = np.argmax(rest, axis=1)
-        m2 = rest[g, k2]
-        _, se = _mean_difference(Sz, starts, n, k1, k2)
-    else:  # one slit: its margin over a score of -1
-        m2 = np.full(len(starts), -1.0)
-        d1 = np.c_[Sz[:, 0] + 1.0, np.zeros(len(Sz))]
-        _, se = _mean_difference(d1, starts, n, np.zeros_like(g), np.ones_like(g))
-    # margin, discounted by its uncertainty (few or disagreeing samples)
-    se = np.where(n > 1, se, _ONE_SAMPLE_SE)
-    margin = np.maximum(0.0, m1 - m2 - se)
-    conf = np.clip(margin / 0.3, 0.0, 1.0)
-    for j, sid in enumerate(s_sorted[starts]):
-        out[int(sid)] = (int(k1[j]), float(conf[j]), float(m1[j]), int(n[j]))
-    if means is not None:
-        means.update({int(sid): mean[j] for j, sid in enumerate(s_sorted[starts])})
-    return out
-
-
 def identify_template(
     image: ArrayLike,
     reference: ReferenceSet,
     *,
     min_confidence: float = 0.30,
-    order_fill: bool = True,
-    end_order: bool = True,
     extraction: SlitExtraction | None = None,
     previous: Identification | None = None,
 ) -> Identification:
@@ -183,14 +67,8 @@ def identify_template(
     image : (H, W) uint8/uint16, a scan (lasers on); must have the reference's image size
     reference : the prepared :class:`~multislit.identify.reference.ReferenceSet` (see
         :func:`~multislit.identify.reference.prepare_reference`), reused for every scan
-    min_confidence : a segment whose dots give its best slit a confidence (0..1) below this is
-        not labelled by its dots alone; default 0.30
-    order_fill : label segments the dots left unidentified by their place in the rows, where
-        the dot-identified stripes around them agree (confidence at most 0.6), or where the
-        order confirms the dots' own weak vote; default True. False: the dots' evidence only
-    end_order : with ``order_fill``, label the rows left out at a segment's ends (where it may
-        mix with another stripe) or far from its samples where their place in the row gives
-        the segment's slit; default True
+    min_confidence : a segment whose samples' vote gives its best slit a confidence (0..1)
+        below this is left out; default 0.30
     extraction : an extraction of ``image`` already made (skips extracting again); default
         None: extract with the reference's stripe width and dot size
     previous : the :class:`Identification` of the previous frame of a sequence (the same
@@ -223,23 +101,7 @@ def identify_template(
             "dots' geometry instead"
         )
     if previous is not None:
-        from multislit.identify.prior import check_previous  # (prior imports this module)
-
         check_previous(previous, reference)
-    options = _Options(
-        min_confidence=min_confidence, order_fill=bool(order_fill), end_order=bool(end_order)
-    )
-    return _identify(image, reference, extraction, options, previous)
-
-
-def _identify(
-    image: ArrayLike,
-    reference: ReferenceSet,
-    extraction: SlitExtraction | None,
-    p: _Options,
-    previous: Identification | None = None,
-) -> Identification:
-    """:func:`identify` with all its settings in ``p`` (tests and benchmarks vary its modes)."""
     img = as_image(image)
     w, h = reference.image_size
     if img.shape != (h, w):
@@ -269,28 +131,19 @@ def _identify(
             "no slits found in the image",
             ex,
         )
-    seg, si, step, hh = _sampled_segments(ex, reference, p)
+    seg, si, step, hh = _sampled_segments(ex, reference)
+    reach = max(step, hh)
     if previous is None:
-        scores = _sample_scores(ex, seg, si, reference, hh, p)
-    else:  # the previous frame's labels: checked, not searched (prior imports this module)
-        from multislit.identify.prior import scores_with_prior
-
-        reach = max(step, hh)
+        scores = _sample_scores(ex, seg, si, reference, hh)
+    else:  # the previous frame's labels: checked, not searched
         si, scores = scores_with_prior(
-            ex, seg, si, reference, hh, reach, p, previous, _sample_scores
+            ex, seg, si, reference, hh, reach, min_confidence, previous, _sample_scores
         )
-    seg = split_at_winner_changes(seg, ex.v, si, scores, _MIN_SCORE)
-    lut_k, lut_c, dot_votes, dropped = _segment_decisions(seg, si, scores, p.min_confidence)
-    has = _vouched_points(ex, seg, si, scores, max(step, hh), lut_k, hh)
+    seg = split_at_winner_changes(seg, ex.v, si, scores, MIN_SCORE)
+    lut_k, lut_c, dropped = _segment_decisions(seg, si, scores, min_confidence)
+    has = _vouched_points(ex, seg, si, scores, reach, lut_k, hh)
     slit[has] = lut_k[seg[has]]
     conf[has] = lut_c[seg[has]]
-    _drop_out_of_order(ex, seg, slit, conf, has, lut_k, lut_c, dropped, reference.spacing_px)
-    if p.order_fill:
-        _apply_order_rules(
-            ex, seg, slit, conf, has, lut_k, lut_c, dot_votes, reference.num_slits, p.end_order
-        )
-    slit[_contradicted_by_dots(seg, si, scores, slit)] = -1
-    conf[slit < 0] = 0.0
     n_id = int(np.sum(lut_k >= 0))
     return Identification(
         ex.u, ex.v, slit, conf, seg, ex.peak, ex.width, n_seg, n_id, dropped, "", ex
@@ -298,7 +151,7 @@ def _identify(
 
 
 def _sampled_segments(
-    ex: SlitExtraction, reference: ReferenceSet, p: _Options
+    ex: SlitExtraction, reference: ReferenceSet
 ) -> tuple[I64, NDArray[np.intp], float, int]:
     """The extraction's segments split at brightness steps, and where they are sampled.
 
@@ -312,123 +165,51 @@ def _sampled_segments(
     """
     seg = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
     step = max(2.0, _SAMPLE_STEP * reference.spacing_px)
-    hh = p.template_size(reference)[1]
+    hh = template_size(reference)[1]
     h = reference.image_size[1]
     si = band_samples(seg, ex.v, step, _BORDER_CUT * hh, h - 1 - _BORDER_CUT * hh)
     return seg, si, step, hh
 
 
 def _sample_scores(
-    ex: SlitExtraction,
-    seg: I64,
-    si: NDArray[np.intp],
-    reference: ReferenceSet,
-    hh: int,
-    p: _Options,
+    ex: SlitExtraction, seg: I64, si: NDArray[np.intp], reference: ReferenceSet, hh: int
 ) -> F64:
     """(M, N) NCC of the templates at the sample points ``si`` with each slit's candidates
     (:func:`~.matching.score_candidates`; NaN: no candidate), the templates following their
-    stripes as ``p.follow_stripe`` says (their lean, and the stripes' spacing around them:
-    :func:`~.matching.template_col_scale`), coarse to fine if ``p.coarse_every`` > 1."""
+    stripes' lean and spacing (:func:`~.matching.template_geometry`)."""
+    shift, scale = template_geometry(ex.u, ex.v, seg, si, reference, hh)
     dots = ex.dots.astype(np.float32)
-    shift, scale = template_geometry(ex.u, ex.v, seg, si, reference, hh, p.follow_stripe)
-    if p.coarse_every > 1 and reference.num_slits > p.keep_hypotheses:
-        return _coarse_to_fine_scores(ex, seg, si, dots, shift, scale, reference, p)
-    return score_candidates(
-        reference, dots, ex.u[si], ex.v[si], p, row_shift=shift, col_scale=scale
-    )
-
-
-def _coarse_to_fine_scores(
-    ex: SlitExtraction,
-    seg: I64,
-    si: NDArray[np.intp],
-    dots: NDArray[np.float32],
-    shift: F64 | None,
-    scale: F64 | None,
-    reference: ReferenceSet,
-    p: _Options,
-) -> F64:
-    """:func:`_sample_scores` coarse to fine: every slit on every ``p.coarse_every``-th sample
-    of each segment, then on every sample only the ``p.keep_hypotheses`` slits each segment's
-    coarse samples liked best; the others keep their coarse mean score."""
-    rank = np.zeros(len(si), np.int64)
-    ss = seg[si]
-    first = np.r_[True, ss[1:] != ss[:-1]]
-    start = np.maximum.accumulate(np.where(first, np.arange(len(si)), 0))
-    rank = np.arange(len(si)) - start
-    coarse = rank % p.coarse_every == 0
-    sc = score_candidates(
-        reference,
-        dots,
-        ex.u[si[coarse]],
-        ex.v[si[coarse]],
-        p,
-        row_shift=None if shift is None else shift[coarse],
-        col_scale=None if scale is None else scale[coarse],
-    )
-    allowed = np.zeros((len(si), reference.num_slits), bool)
-    coarse_mean = np.full((len(si), reference.num_slits), np.nan)
-    sc_seg = ss[coarse]
-    for sid in np.unique(sc_seg):
-        rows = sc_seg == sid
-        with np.errstate(invalid="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a slit without candidates
-            mean = np.nanmean(sc[rows], axis=0)
-        ranked = np.where(np.isfinite(mean), mean, -np.inf)
-        top = np.argsort(ranked)[::-1][: p.keep_hypotheses]
-        members = np.flatnonzero(ss == sid)
-        allowed[np.ix_(members, top)] = True
-        coarse_mean[members] = mean
-    scores = score_candidates(reference, dots, ex.u[si], ex.v[si], p, allowed, shift, scale)
-    # the slits not kept still count in the vote, with their coarse mean score: the margin
-    # to the runner-up must not grow just because the runner-up was not scored again
-    fill = ~allowed & np.isfinite(coarse_mean)
-    scores[fill] = coarse_mean[fill]
-    return scores
+    return score_candidates(reference, dots, ex.u[si], ex.v[si], shift, scale)
 
 
 def _segment_decisions(
     seg: I64, si: NDArray[np.intp], scores: F64, min_confidence: float
-) -> tuple[I64, F64, dict[int, tuple[int, float, F64]], dict[str, int]]:
-    """Accept or drop each segment by its samples' vote.
+) -> tuple[I64, F64, dict[str, int]]:
+    """Accept or drop each segment by its samples' vote (:func:`~.votes.segment_votes`).
 
     Returns
     -------
     lut_k, lut_c : (S,) int64 and float64, per segment id its slit (-1: not accepted) and
         confidence
-    dot_votes : per dropped segment with scored samples: (its best slit if dropped only for
-        low confidence, else -1; confidence; (N,) mean score per slit), for the order rules
     dropped : counts of the dropped segments by reason
     """
-    means: dict[int, F64] = {}
-    votes = _segment_votes(seg[si], scores, means)
-    dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0, "order": 0}
-    accepted: dict[int, tuple[int, float]] = {}
-    dot_votes: dict[int, tuple[int, float, F64]] = {}  # of the segments dropped
+    votes = segment_votes(seg[si], scores)
+    dropped = {"too_short": 0, "no_candidate": 0, "weak_match": 0, "low_confidence": 0}
+    lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
+    lut_c = np.zeros(int(seg.max()) + 1)
     for sid in np.flatnonzero(np.bincount(seg[seg >= 0])):
         k, c, m1, n = votes.get(int(sid), (-1, 0.0, np.nan, 0))
-        low_confidence = False
-        if n < _MIN_SAMPLES:
+        if n < MIN_SAMPLES:
             dropped["too_short" if n > 0 or int(sid) not in votes else "no_candidate"] += 1
         elif k < 0:
             dropped["no_candidate"] += 1
-        elif m1 < _MIN_SCORE:
+        elif m1 < MIN_SCORE:
             dropped["weak_match"] += 1
         elif c < min_confidence:
             dropped["low_confidence"] += 1
-            low_confidence = True
         else:
-            accepted[int(sid)] = (k, c)
-            continue
-        if int(sid) in means:
-            # not enough alone; the order along the rows may confirm it (fill_by_order)
-            dot_votes[int(sid)] = (k if low_confidence else -1, c, means[int(sid)])
-    lut_k = np.full(int(seg.max()) + 1, -1, np.int64)
-    lut_c = np.zeros(int(seg.max()) + 1)
-    for sid, (k, c) in accepted.items():
-        lut_k[sid], lut_c[sid] = k, c
-    return lut_k, lut_c, dot_votes, dropped
+            lut_k[sid], lut_c[sid] = k, c
+    return lut_k, lut_c, dropped
 
 
 @njit(cache=True)
@@ -465,136 +246,12 @@ def _vouched_points(
     surface or slit, the centre mixes two stripes; :func:`~.segments.near_segment_ends`)."""
     has = seg >= 0
     usable = np.zeros(len(seg), bool)
-    usable[si[_scored(scores)]] = True
+    usable[si[scored_rows(scores)]] = True
     reach = _rows_to_sample(by_segment(seg, ex.v), seg, ex.v.astype(np.float64), usable)
     has &= reach <= max_reach
     if has.any():
         has &= ~near_segment_ends(ex.u, ex.v, seg, lut_k, _TRIM_ROWS, _junction_rows(hh))
     return has
-
-
-def _contradicted_by_dots(
-    seg: I64, si: NDArray[np.intp], scores: F64, slit: I64
-) -> NDArray[np.bool_]:
-    """(K,) bool: the labelled points whose segment's own dots contradict their slit.
-
-    However a segment got a label (its dots, or its place in the rows), its own samples have
-    the last word: where their mean NCC for the label lies below their best slit's by more than
-    ``_VETO_SE`` standard errors of the per-sample difference (plus ``_VETO_TOLERANCE``), the
-    label is left out. Every label a segment carries is checked (a segment with one sample is
-    taken to have a standard error of ``_ONE_SAMPLE_SE``). A segment without samples, or whose
-    dots are undecided, keeps its labels.
-    """
-    out = np.zeros(len(seg), bool)
-    lab = np.flatnonzero((slit >= 0) & (seg >= 0))
-    if lab.size == 0 or len(si) == 0:
-        return out
-    # the (segment, label) pairs (by segment, then label), and for each the samples of its
-    # segment (in their order)
-    n_lab = int(slit[lab].max()) + 1
-    key = seg[lab] * n_lab + slit[lab]
-    present = np.zeros(int(key.max()) + 1, bool)
-    present[key] = True
-    pair_key = np.flatnonzero(present)
-    point_pair = (np.cumsum(present) - 1)[key]
-    pairs = np.c_[pair_key // n_lab, pair_key % n_lab]
-    ss = seg[si]
-    order = group_order(ss)
-    n_per_seg = np.bincount(ss[order], minlength=int(pairs[-1, 0]) + 1)
-    lo = (np.cumsum(n_per_seg) - n_per_seg)[pairs[:, 0]]
-    n = n_per_seg[pairs[:, 0]]
-    has = n > 0
-    if not has.any():
-        return out
-    starts = np.r_[0, np.cumsum(n[has])[:-1]]
-    j = order[np.arange(int(n[has].sum())) + np.repeat(lo[has] - starts, n[has])]
-    X = _filled_rows(scores, j, _NO_CANDIDATE)
-    mean = np.add.reduceat(X, starts, axis=0) / n[has][:, None]
-    dm, se = _mean_difference(X, starts, n[has], np.argmax(mean, axis=1), pairs[has, 1])
-    se = np.where(n[has] > 1, se, _ONE_SAMPLE_SE)  # one sample: no spread to measure
-    bad_pair = np.zeros(len(pairs), bool)
-    bad_pair[np.flatnonzero(has)] = dm > _VETO_SE * se + _VETO_TOLERANCE
-    out[lab] = bad_pair[point_pair]
-    return out
-
-
-def _drop_out_of_order(
-    ex: SlitExtraction,
-    seg: I64,
-    slit: I64,
-    conf: F64,
-    has: NDArray[np.bool_],
-    lut_k: I64,
-    lut_c: F64,
-    dropped: dict[str, int],
-    spacing_px: float,
-) -> None:
-    """Left-to-right order: of each pair of points of two segments side by side in a row
-    (within 1.5 ``spacing_px``) out of slit order, the point of the less confident segment is
-    left out (a segment may keep its other rows: at an object's edge the order breaks in the
-    edge's rows only); a segment left with none of its points is dropped. Updates ``slit``,
-    ``conf``, ``has``, ``lut_k``, ``lut_c`` and ``dropped`` in place."""
-    n_ids = int(seg.max()) + 1
-    before = np.bincount(seg[(slit >= 0) & (seg >= 0)], minlength=n_ids) > 0
-    for _ in range(10):
-        a, b = order_violations(ex.u, ex.v, slit, seg, 1.5 * spacing_px)
-        if a.size == 0:
-            break
-        out = np.where(lut_c[seg[a]] < lut_c[seg[b]], a, b)
-        slit[out] = -1
-        conf[out] = 0.0
-        has[out] = False
-    gone = np.flatnonzero(
-        before & (np.bincount(seg[(slit >= 0) & (seg >= 0)], minlength=n_ids) == 0)
-    )
-    lut_k[gone] = -1
-    lut_c[gone] = 0.0
-    dropped["order"] += int(gone.size)
-
-
-def _apply_order_rules(
-    ex: SlitExtraction,
-    seg: I64,
-    slit: I64,
-    conf: F64,
-    has: NDArray[np.bool_],
-    lut_k: I64,
-    lut_c: F64,
-    dot_votes: dict[int, tuple[int, float, F64]],
-    num_slits: int,
-    end_order: bool,
-) -> None:
-    """The order rules (:mod:`~multislit.identify.order`), in place on ``slit``, ``conf``,
-    ``lut_k`` and ``lut_c``: segments the dots left unidentified take the slit the order along
-    the rows gives (:func:`~.order.fill_by_order`) or confirms
-    (:func:`~.order.confirm_by_neighbours`); with ``end_order`` the rows left out at a
-    segment's ends come back where the order agrees; a point whose place in its row gives
-    another slit than its label is left out."""
-    order = order_labels(ex.u, ex.v, seg, slit, conf, num_slits)
-    filled = fill_by_order(seg, slit, has, order, num_slits, dot_votes, min_score=_MIN_SCORE)
-    for sid, (k, c) in filled.items():
-        lut_k[sid], lut_c[sid] = k, c
-    weak = np.full(len(lut_k), -1, np.int64)
-    for sid, (k, _, _) in dot_votes.items():
-        if lut_k[sid] < 0:
-            weak[sid] = k
-    slit[has] = lut_k[seg[has]]
-    agreed = confirm_by_neighbours(order, seg, slit, weak, has, _NEIGHBOUR_SHARE)
-    for sid, k in agreed.items():
-        lut_k[sid], lut_c[sid] = k, 0.4
-    slit[has] = lut_k[seg[has]]
-    conf[has] = lut_c[seg[has]]
-    if end_order:
-        # rows left out at a segment's ends (or far from its samples) come back where
-        # their place in the row says the segment's slit too
-        back = (seg >= 0) & ~has & (order.between >= 0)
-        back &= order.between == lut_k[np.maximum(seg, 0)]
-        slit[back] = lut_k[seg[back]]
-        conf[back] = lut_c[seg[back]]
-    # a point whose place in its row, within the span of the run's dot-identified
-    # stripes, gives another slit than its label is left out
-    left_out = (slit >= 0) & (order.inside >= 0) & (order.inside != slit)
-    slit[left_out] = -1
 
 
 def compile_kernels() -> None:
@@ -604,7 +261,7 @@ def compile_kernels() -> None:
     beside the package, so only the first run after an install pays it. ``make demo`` and
     ``make test`` call this once after installing. It runs :func:`identify` on a small
     synthetic frame (five slits, two flat references), once with dots beside every stripe and
-    once with one stripe's dots missing (so the order fills it), after the reference
+    once with one stripe's dots missing (its templates flat: left out), after the reference
     preparation's patch sampler (:func:`~multislit.identify.patches.compile_kernels`).
     """
     from multislit.identify.patches import compile_kernels as compile_patch_kernels

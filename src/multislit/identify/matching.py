@@ -10,7 +10,6 @@ image instead of a search over the image. The result is a score per sample and s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -19,8 +18,6 @@ from numpy.typing import NDArray
 from multislit.identify.patches import (
     bilinear_ncc_cells,
     cell_of,
-    normalise_patches,
-    sample_patches,
     sample_sheared_patches,
 )
 from multislit.identify.reference import (
@@ -41,48 +38,6 @@ _TEMPLATE_HALF_WIDTH = 0.40
 _TEMPLATE_DOTS = 12.0
 
 
-@dataclass(frozen=True)
-class _Options:
-    """Settings of the identification: the user's (``min_confidence``, ``order_fill``,
-    ``end_order``, see :func:`~multislit.identify.labelling.identify`) and internal modes that
-    tests and benchmarks vary.
-
-    template_half_width : template half width across the slit, in reference slit spacings
-    search_px : the reference patch is also compared at this many px either side of each
-        candidate along the epipolar line (0: at the candidate only)
-    depth_margin : a slit is a hypothesis for a sample only if it lights the sample at a depth
-        within the references' depth span widened by this fraction of it on either side
-        (inf: no depth limit)
-    references : "nearest": each hypothesis is compared in the reference image where its
-        candidate lies nearest the sample (the least deformed dots); "all": in every reference,
-        keeping the best score
-    follow_stripe : "line": the template's rows are shifted so that it follows its stripe's
-        lean (a line fitted to the segment's centres); "off": upright templates
-    coarse_every, keep_hypotheses : coarse to fine: every slit is scored on every
-        ``coarse_every``-th sample of a segment, then on all its samples only the segment's
-        ``keep_hypotheses`` best slits (``coarse_every`` 1: every slit everywhere)
-    """
-
-    min_confidence: float = 0.30
-    order_fill: bool = True
-    end_order: bool = True
-    template_half_width: float = _TEMPLATE_HALF_WIDTH
-    search_px: int = 0
-    depth_margin: float = math.inf
-    references: str = "nearest"
-    follow_stripe: str = "line"
-    coarse_every: int = 1
-    keep_hypotheses: int = 3
-
-    def template_size(self, ref: ReferenceSet) -> tuple[int, int]:
-        """Template half width and half height (px): as wide as a dot band, tall enough for
-        dots."""
-        hw = max(3, int(round(self.template_half_width * ref.spacing_px)))
-        want = _TEMPLATE_DOTS / max(ref.dot_density, 1e-6) / (2 * hw + 1)
-        hh = int(round(np.clip(want / 2, 0.5 * ref.spacing_px, 4.0 * ref.spacing_px)))
-        return hw, max(4, hh)
-
-
 def template_size(reference: ReferenceSet) -> tuple[int, int]:
     """Half width and half height (px) of the scan templates :func:`identify` matches.
 
@@ -97,7 +52,10 @@ def template_size(reference: ReferenceSet) -> tuple[int, int]:
     -------
     half_width, half_height : int, px
     """
-    return _Options().template_size(reference)
+    hw = max(3, int(round(_TEMPLATE_HALF_WIDTH * reference.spacing_px)))
+    want = _TEMPLATE_DOTS / max(reference.dot_density, 1e-6) / (2 * hw + 1)
+    hh = int(round(np.clip(want / 2, 0.5 * reference.spacing_px, 4.0 * reference.spacing_px)))
+    return hw, max(4, hh)
 
 
 @njit(cache=True)
@@ -126,12 +84,11 @@ def template_row_shift(
     si: NDArray[np.intp],
     ref: ReferenceSet,
     hh: int,
-    mode: str,
     *,
     ref_u: F64 | None = None,
-) -> F64 | None:
+) -> F64:
     """(M, 2*hh+1) px: sideways shift of each template row so that the template follows its
-    stripe (``_Options.follow_stripe``); None for ``mode`` "off".
+    stripe's lean.
 
     A line u = a + s dv is fitted (least squares, all samples at once) to the centres of the
     sample's segment within +-hh rows; a sample with fewer than 3 such centres, or spanning
@@ -140,8 +97,6 @@ def template_row_shift(
     px: the middle reference's curves in the samples' rows, if already at hand (default: made
     here).
     """
-    if mode == "off" or len(si) == 0:
-        return None
     dy = np.arange(-hh, hh + 1, dtype=np.float64)
     # the segment's centre in every template row (absent where the segment has no point there)
     order = segment_runs(seg, v)[0]
@@ -233,34 +188,19 @@ def template_col_scale(
 
 
 def template_geometry(
-    u: F64, v: F64, seg: I64, si: NDArray[np.intp], ref: ReferenceSet, hh: int, mode: str
-) -> tuple[F64 | None, F64 | None]:
-    """How the templates at the samples ``si`` follow their stripes (``_Options.follow_stripe``
-    ``mode``): their rows' sideways shifts (:func:`template_row_shift`) and their columns'
-    spacing (:func:`template_col_scale`); (None, None) for "off" (upright templates)."""
-    if mode == "off" or len(si) == 0:
-        return None, None
+    u: F64, v: F64, seg: I64, si: NDArray[np.intp], ref: ReferenceSet, hh: int
+) -> tuple[F64, F64]:
+    """How the templates at the samples ``si`` follow their stripes: their rows' sideways
+    shifts (:func:`template_row_shift`, (M, 2*hh+1) px) and their columns' spacing
+    (:func:`template_col_scale`, (M,) px)."""
+    if len(si) == 0:
+        return np.zeros((0, 2 * hh + 1)), np.ones(0)
     U = _middle_curves_u(v, si, ref)
-    shift = template_row_shift(u, v, seg, si, ref, hh, mode, ref_u=U)
+    shift = template_row_shift(u, v, seg, si, ref, hh, ref_u=U)
     return shift, template_col_scale(u, v, si, ref, ref_u=U)
 
 
-def _in_volume(ref: ReferenceSet, uv: F64, margin: float) -> NDArray[np.bool_]:
-    """(M, N) bool: could slit n light sample m at a depth inside the measuring volume?
-
-    In the sample's row, slit n's reference curves span [lo, hi] over the boards' depths; the
-    sample must lie within [lo - margin (hi - lo), hi + margin (hi - lo)].
-    """
-    U = curve_u(ref.curves[:, None, :, :], uv[None, :, 1:2])  # (R, M, N)
-    lo, hi = U.min(axis=0), U.max(axis=0)
-    pad = margin * (hi - lo)
-    u = uv[:, 0:1]
-    return (u >= lo - pad) & (u <= hi + pad)
-
-
-def _candidates(
-    ref: ReferenceSet, uv: F64, lines: F64, hw: int, hh: int, depth_margin: float = np.inf
-) -> tuple[F64, F64]:
+def _candidates(ref: ReferenceSet, uv: F64, lines: F64, hw: int, hh: int) -> tuple[F64, F64]:
     """Where each sample's epipolar line meets each slit's curve in each reference image.
 
     Parameters
@@ -268,13 +208,12 @@ def _candidates(
     uv : (M, 2) float64, px, sample points
     lines : (M, 3) float64, their epipolar lines (unit normal)
     hw, hh : template half sizes, px
-    depth_margin : ``_Options.depth_margin`` (inf: no depth limit)
 
     Returns
     -------
     uu, vv : (R, M, N) float64, px, the intersections; NaN where there is none, where it lies
-        beyond the rows the curve was seen in (+- ``hh``), where the template would leave
-        the image, or where the slit would put the sample outside the measuring volume
+        beyond the rows the curve was seen in (+- ``hh``), or where the template would leave
+        the image
     """
     w, h = ref.image_size
     R, N = ref.curves.shape[:2]
@@ -288,10 +227,6 @@ def _candidates(
     )
     uu = np.empty((R, M, N))
     _mask_candidates(ref.curves, ref.vrange, hw, hh, w, h, vv, uu)
-    if np.isfinite(depth_margin):
-        out = ~_in_volume(ref, uv, depth_margin)[None]
-        uu = np.where(out, np.nan, uu)
-        vv = np.where(out, np.nan, vv)
     return uu, vv
 
 
@@ -414,52 +349,30 @@ def _hypotheses(
     lines: F64,
     hw: int,
     hh: int,
-    p: _Options,
     allowed: NDArray[np.bool_] | None,
 ) -> tuple[F64, F64, NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
-    """The reference patch centres each sample's hypotheses are compared at.
+    """The reference patch centres each sample's hypotheses are compared at: per sample and
+    slit, the candidate in the reference image where it lies nearest the sample (the board
+    depth closest to the surface's, the least deformed dots).
 
     ``lines`` (M, 3) are the samples' epipolar lines (``ref.epipolar_lines(uv)``).
 
     Returns
     -------
-    cu, cv : (M, N, R', O) float64, px, the centres: per sample and slit, in the reference(s)
-        ``p.references`` selects (R' of them), at the ``O = 2 p.search_px + 1`` offsets along
-        the epipolar line
-    rr : (M, N, R', O) intp, the reference image of each centre
-    ok : (M, N, R', O) bool, where the centre is a candidate
-    valid_any : (M, N) bool, the hypotheses with a candidate in any reference (and allowed)
+    cu, cv : (M, N) float64, px, the centres
+    rr : (M, N) intp, the reference image of each centre
+    ok : (M, N) bool, where the centre is a candidate (and the hypothesis ``allowed``)
+    valid_any : (M, N) bool, the same: the hypotheses with a candidate in any reference
     """
-    R, N = ref.curves.shape[:2]
-    M = len(uv)
-    offs = np.arange(-p.search_px, p.search_px + 1, dtype=float)
-    direction = np.c_[lines[:, 1], -lines[:, 0]]  # along the line
-    uu_all, vv_all = _candidates(ref, uv, lines, hw, hh, p.depth_margin)  # (R, M, N)
-    if p.references == "nearest":
-        # compare each hypothesis in the reference where its candidate lies nearest the
-        # scan point: the board depth closest to the surface's, the least deformed dots
-        r_sel = np.empty((M, N, 1), np.intp)
-        cu, cv = np.empty((M, N, 1)), np.empty((M, N, 1))
-        valid_any = np.empty((M, N), np.bool_)
-        _nearest_candidates(uu_all, vv_all, uv, r_sel[..., 0], cu[..., 0], cv[..., 0], valid_any)
-    else:
-        valid_any = np.isfinite(vv_all).any(axis=0)
-        r_sel = np.broadcast_to(np.arange(R)[None, None, :], (M, N, R))
-        ii = np.arange(M)[:, None, None]
-        kk = np.arange(N)[None, :, None]
-        cu = uu_all[r_sel, ii, kk]  # (M, N, R') candidate centres
-        cv = vv_all[r_sel, ii, kk]
+    M, N = len(uv), ref.curves.shape[1]
+    uu_all, vv_all = _candidates(ref, uv, lines, hw, hh)  # (R, M, N)
+    rr = np.empty((M, N), np.intp)
+    cu, cv = np.empty((M, N)), np.empty((M, N))
+    valid_any = np.empty((M, N), np.bool_)
+    _nearest_candidates(uu_all, vv_all, uv, rr, cu, cv, valid_any)
     if allowed is not None:
         valid_any &= allowed
-    ok = np.isfinite(cv) & valid_any[:, :, None]
-    # search along the epipolar line: (M, N, R', O)
-    cu, cv = cu[..., None], cv[..., None]
-    if p.search_px:
-        cu = cu + offs * direction[:, None, None, 0:1]
-        cv = cv + offs * direction[:, None, None, 1:2]
-    rr = np.broadcast_to(r_sel[..., None], cu.shape)
-    ok = np.broadcast_to(ok[..., None], cu.shape)
-    return cu, cv, rr, ok, valid_any
+    return cu, cv, rr, np.isfinite(cv) & valid_any, valid_any
 
 
 #: Largest vertical dot motion per px of sideways motion that a template follows (the slope of
@@ -478,27 +391,21 @@ def _dot_rise(lines: F64) -> F64:
 
 
 @njit(cache=True)
-def _split_candidates(cu, cv, rr, ok, hw, hh, w, h, ws, hs, r_fast, cells, fast, direct):
-    """Sort the candidate patch centres ``cu``, ``cv`` (M, K) px (in reference ``rr``, where
-    ``ok``) of :func:`score_candidates`: ``fast`` where the patch of half size ``hw``, ``hh``
-    lies inside the ``w`` x ``h`` image (scored by :func:`_ncc_at`, from ``r_fast`` and the
-    ``cells`` x0, y0, fx, fy of the top-left sample position in ``ws`` x ``hs`` windows; 0
-    elsewhere), ``direct`` where it does not (sampled). Returns the most ``fast`` candidates
-    of a sample."""
+def _fast_cells(cu, cv, rr, ok, hw, hh, ws, hs, r_fast, cells):
+    """Where :func:`_ncc_at` reads the candidate patches centred at ``cu``, ``cv`` (M, K) px
+    in the references ``rr``, where ``ok`` (inside the image, as :func:`_candidates` keeps
+    them): ``r_fast`` and the ``cells`` x0, y0, fx, fy of the top-left sample position in
+    ``ws`` x ``hs`` windows (0 where not ``ok``). Returns the most candidates of a sample."""
     x0, y0, fx, fy = cells
     M, K = cu.shape
     n_max = 0
     for m in range(M):
         n = 0
         for k in range(K):
-            u, v = cu[m, k], cv[m, k]
-            inside = hw <= u <= w - 1 - hw and hh <= v <= h - 1 - hh  # (False for NaN)
-            f = ok[m, k] and inside
-            fast[m, k] = f
-            direct[m, k] = ok[m, k] and not inside
+            f = ok[m, k]
             r_fast[m, k] = rr[m, k] if f else 0
-            x0[m, k], fx[m, k] = cell_of((u if f else hw) - hw, ws)
-            y0[m, k], fy[m, k] = cell_of((v if f else hh) - hh, hs)
+            x0[m, k], fx[m, k] = cell_of((cu[m, k] if f else hw) - hw, ws)
+            y0[m, k], fy[m, k] = cell_of((cv[m, k] if f else hh) - hh, hs)
             n += f
         n_max = max(n_max, n)
     return n_max
@@ -509,10 +416,9 @@ def score_candidates(
     scan_dots: NDArray,
     pu: F64,
     pv: F64,
-    p: _Options,
+    row_shift: F64,
+    col_scale: F64,
     allowed: NDArray[np.bool_] | None = None,
-    row_shift: F64 | None = None,
-    col_scale: F64 | None = None,
 ) -> F64:
     """NCC of each sample's template at each slit's epipolar intersection.
 
@@ -521,85 +427,55 @@ def score_candidates(
     ref : the prepared references
     scan_dots : (H, W) float32, the scan's dot image
     pu, pv : (M,) float64, px, the sample points
-    p : the template size and matching modes
-    allowed : (M, N) bool, the hypotheses scored per sample (others stay NaN); default all
     row_shift : (M, 2*hh+1) float64, px, sideways shift of the template's rows
         (:func:`template_row_shift`); each row also moves along the dot projector's epipolar
         line as far as the shift says (a depth change moves the dots along that line, the
-        slit along the row); default upright templates
-    col_scale : (M,) float64, px per template column (:func:`template_col_scale`), with
-        ``row_shift`` only; default 1
+        slit along the row)
+    col_scale : (M,) float64, px per template column (:func:`template_col_scale`)
+    allowed : (M, N) bool, the hypotheses scored per sample (others stay NaN); default all
 
     Returns
     -------
-    scores : (M, N) float64, the best NCC per sample and slit; NaN where the slit has no
-        candidate or the template is flat (no dots around the sample)
+    scores : (M, N) float64, the NCC per sample and slit; NaN where the slit has no candidate
+        or the template is flat (no dots around the sample)
     """
     N = ref.curves.shape[1]
-    w, h = ref.image_size
-    hw, hh = p.template_size(ref)
+    hw, hh = template_size(ref)
     M = len(pu)
     if M == 0:
         return np.full((M, N), np.nan)
     sums = ref.window_sums(hw, hh)
     uv = np.c_[pu, pv]
     lines = ref.epipolar_lines(uv)  # (M, 3), unit normal (a, b)
-    cu, cv, rr, ok, valid_any = _hypotheses(ref, uv, lines, hw, hh, p, allowed)
-    shape = cu.shape
-    # a patch shifted off the image is zero-padded: sample it directly (rare)
-    rr_f = np.empty((M, cu[0].size), np.intp)
-    cells = (np.empty_like(rr_f), np.empty_like(rr_f), np.empty(rr_f.shape), np.empty(rr_f.shape))
-    fast_flat, direct = np.empty(rr_f.shape, np.bool_), np.empty(shape, np.bool_)
-    n_max = _split_candidates(
-        *(a.reshape(M, -1) for a in (cu, cv, rr, ok)),
+    cu, cv, rr, ok, valid_any = _hypotheses(ref, uv, lines, hw, hh, allowed)
+    r_fast = np.empty((M, N), np.intp)
+    cells = (np.empty_like(r_fast), np.empty_like(r_fast), np.empty((M, N)), np.empty((M, N)))
+    n_max = _fast_cells(cu, cv, rr, ok, hw, hh, *sums.shape[1:3], r_fast, cells)
+    patches = sample_sheared_patches(
+        scan_dots,
+        uv,
         hw,
         hh,
-        w,
-        h,
-        *sums.shape[1:3],
-        rr_f,
-        cells,
-        fast_flat,
-        direct.reshape(M, -1),
+        row_shift,
+        row_rise=row_shift * _dot_rise(lines)[:, None],
+        col_scale=col_scale,
     )
-    if row_shift is None:
-        patches = sample_patches(scan_dots, uv, hw, hh)
-    else:
-        patches = sample_sheared_patches(
-            scan_dots,
-            uv,
-            hw,
-            hh,
-            row_shift,
-            row_rise=row_shift * _dot_rise(lines)[:, None],
-            col_scale=col_scale,
-        )
     # a flat template (no dots around the point) says nothing
     flat = ~np.any(patches != patches[:, :1, :1], axis=(1, 2))
-    # (every entry is scored when every sample has all its candidates)
-    sc = np.empty(shape) if n_max == fast_flat.shape[1] else np.full(shape, -np.inf)
-    sc_flat = sc.reshape(M, -1)
-    if n_max == fast_flat.shape[1]:
-        _ncc_at(ref, sums, patches, rr_f, cells, hw, hh, sc_flat)
-    elif n_max > 0:
-        # few hypotheses per sample (coarse to fine, missing candidates): score only those,
-        # packed to the front of each sample's row
-        cols = np.argsort(~fast_flat, axis=1, kind="stable")[:, :n_max]
-        r_p, *cells_p = (np.take_along_axis(a, cols, axis=1) for a in (rr_f, *cells))
-        scored = np.empty(cols.shape)
-        _ncc_at(ref, sums, patches, r_p, tuple(cells_p), hw, hh, scored)
-        np.put_along_axis(sc_flat, cols, scored, axis=1)
-    sc_flat[~fast_flat] = -np.inf
-    if direct.any():
-        di = np.nonzero(direct)
-        tmpl = np.zeros((M, patches[0].size), np.float32)
-        rows = np.unique(di[0])
-        tmpl[rows] = normalise_patches(patches[rows])
-        for r in np.unique(rr[di]):
-            sel = tuple(q[rr[di] == r] for q in di)
-            pat = normalise_patches(sample_patches(ref.dots[r], np.c_[cu[sel], cv[sel]], hw, hh))
-            sc[sel] = np.einsum("ij,ij->i", pat, tmpl[sel[0]])
-    best = sc.reshape(M, N) if sc.size == M * N else sc.reshape(M, N, -1).max(axis=2)
-    scores = np.where(valid_any & np.isfinite(best), best, np.nan)
+    if n_max == N:  # every sample has all its candidates: score every entry
+        sc = np.empty((M, N))
+        _ncc_at(ref, sums, patches, r_fast, cells, hw, hh, sc)
+    else:
+        sc = np.full((M, N), -np.inf)
+        if n_max > 0:
+            # few hypotheses per sample (a prior's, missing candidates): score only those,
+            # packed to the front of each sample's row
+            cols = np.argsort(~ok, axis=1, kind="stable")[:, :n_max]
+            r_p, *cells_p = (np.take_along_axis(a, cols, axis=1) for a in (r_fast, *cells))
+            scored = np.empty(cols.shape)
+            _ncc_at(ref, sums, patches, r_p, tuple(cells_p), hw, hh, scored)
+            np.put_along_axis(sc, cols, scored, axis=1)
+        sc[~ok] = -np.inf
+    scores = np.where(valid_any & np.isfinite(sc), sc, np.nan)
     scores[flat] = np.nan
     return scores

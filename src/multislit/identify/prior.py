@@ -22,15 +22,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.errors import IdentificationError
-from multislit.identify.labelling import (
-    _MIN_SAMPLES,
-    _MIN_SCORE,
-    Identification,
-    _segment_votes,
-)
-from multislit.identify.matching import _Options, score_candidates, template_geometry
+from multislit.identify.matching import score_candidates, template_geometry
 from multislit.identify.reference import ReferenceSet
+from multislit.identify.result import Identification
 from multislit.identify.segments import clear_winners
+from multislit.identify.votes import MIN_SAMPLES, MIN_SCORE, segment_votes
 from multislit.stripes import SlitExtraction
 
 F64 = NDArray[np.float64]
@@ -162,7 +158,7 @@ def _thinned(seg: I64, v: F64, si: NDArray[np.intp], rows: float) -> NDArray[np.
 def _strays(ss: I64, vs: F64, scores: F64, k: I64, reach: float) -> set[int]:
     """The segments some of whose checked samples clearly prefer another slit than their prior.
 
-    A sample clearly prefers slit j when its best NCC (j's) reaches ``_MIN_SCORE`` and leads
+    A sample clearly prefers slit j when its best NCC (j's) reaches ``MIN_SCORE`` and leads
     the second best (:func:`~.segments.clear_winners`, as the full identification's split). A
     segment is sent back when two such samples in a row (of its clear samples, by row) prefer
     the same other slit (where the full identification would split the segment), or one does
@@ -177,7 +173,7 @@ def _strays(ss: I64, vs: F64, scores: F64, k: I64, reach: float) -> set[int]:
     k : (M,) int64, their segment's prior slit
     reach : px, the thinned samples' spacing
     """
-    win, clear = clear_winners(scores, _MIN_SCORE)
+    win, clear = clear_winners(scores, MIN_SCORE)
     stray = clear & (win != k)
     out: set[int] = set()
     same = np.r_[ss[1:] == ss[:-1], False]  # the next sample is of the same segment
@@ -201,7 +197,7 @@ def scores_with_prior(
     reference: ReferenceSet,
     hh: int,
     reach: float,
-    p: _Options,
+    min_confidence: float,
     previous: Identification,
     full_scores: Callable[..., F64],
 ) -> tuple[NDArray[np.intp], F64]:
@@ -216,9 +212,9 @@ def scores_with_prior(
     hh : template half height, px
     reach : px, the farthest a point may lie (in rows) from a scored sample of its segment to
         be vouched for; the checked segments keep a sample within it of each of their points
-    p : the identification's settings (``p.min_confidence`` is the check's confidence)
+    min_confidence : the confidence the check's vote must reach (the identification's)
     previous : the previous frame's identification (checked by :func:`check_previous`)
-    full_scores : ``full_scores(ex, seg, si, reference, hh, p)`` -> (M', N) scores of the
+    full_scores : ``full_scores(ex, seg, si, reference, hh)`` -> (M', N) scores of the
         full search over all slits, for the segments without a prior or failing the check
 
     Returns
@@ -238,29 +234,29 @@ def scores_with_prior(
     if ci.size:
         kk = k_s[cand]
         allowed = np.abs(np.arange(N)[None, :] - kk[:, None]) <= _NEIGHBOURS
-        shift, scale = template_geometry(ex.u, ex.v, seg, ci, reference, hh, p.follow_stripe)
+        shift, scale = template_geometry(ex.u, ex.v, seg, ci, reference, hh)
         sc_c = score_candidates(
-            reference, ex.dots.astype(np.float32), ex.u[ci], ex.v[ci], p, allowed, shift, scale
+            reference, ex.dots.astype(np.float32), ex.u[ci], ex.v[ci], shift, scale, allowed
         )
         # samples the prior slit does not explain well are searched over all slits
         own = sc_c[np.arange(len(ci)), kk]
         unsure = ~(own >= _CONFIRM)
         if unsure.any():
-            sc_c[unsure] = full_scores(ex, seg, ci[unsure], reference, hh, p)
-        votes = _segment_votes(seg[ci], sc_c)
+            sc_c[unsure] = full_scores(ex, seg, ci[unsure], reference, hh)
+        votes = segment_votes(seg[ci], sc_c)
         stray_seg = _strays(seg[ci], ex.v[ci], sc_c, kk, reach)
         for sid, (k, c, m1, n) in votes.items():
             accepted[sid] = (
                 k == prior[sid]
-                and n >= _MIN_SAMPLES
-                and m1 >= _MIN_SCORE
-                and c >= p.min_confidence
+                and n >= MIN_SAMPLES
+                and m1 >= MIN_SCORE
+                and c >= min_confidence
                 and sid not in stray_seg
             )
         keep = accepted[seg[ci]]
         ci, sc_c = ci[keep], sc_c[keep]
     rest = si[~accepted[seg[si]]] if len(si) else si
-    sc_r = full_scores(ex, seg, rest, reference, hh, p)
+    sc_r = full_scores(ex, seg, rest, reference, hh)
     out_si = np.r_[ci, rest].astype(si.dtype)
     out_sc = np.concatenate([sc_c.reshape(-1, N), sc_r.reshape(-1, N)])
     o = np.lexsort((ex.v[out_si], seg[out_si]))

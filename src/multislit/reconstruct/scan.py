@@ -30,7 +30,6 @@ from multislit.identify import (
     RigGeometry,
     capture_reference,
     identify,
-    identify_template,
     rig_geometry,
 )
 from multislit.io import Capture
@@ -460,7 +459,6 @@ def _scan(
     *,
     options: ScanOptions | None,
     name: str,
-    end_order: bool,
     refine: bool = True,
     previous: ScanResult | None = None,
 ) -> ScanResult:
@@ -489,17 +487,7 @@ def _scan(
     extraction = extract_slits(
         image, reference.stripe_width_px, reference.dot_size_px, **ex_opts.kwargs()
     )
-    if id_opts.method == "template":
-        ident = identify_template(
-            image,
-            reference,
-            min_confidence=id_opts.confidence,
-            end_order=end_order,
-            extraction=extraction,
-            previous=prior,
-        )
-    else:
-        ident = identify(image, reference, rig, options=id_opts, extraction=extraction)
+    ident = identify(image, reference, rig, options=id_opts, extraction=extraction, previous=prior)
     m = ident.slit >= 0
     problem = _not_a_scan(ident)
     if problem:
@@ -594,7 +582,6 @@ def scan_image(
         calibration,
         options=options,
         name=name,
-        end_order=True,
         previous=previous,
     )
 
@@ -608,9 +595,7 @@ def scan_image_for_holes(
     name: str = "",
 ) -> ScanResult:
     """The scan hole measurement works on: :func:`scan_image` on the extraction's centres
-    (no refinement, whatever ``options`` say), without the rows the identification restores at
-    segment ends by the row order (``identify(..., end_order=False)``), which would add edges
-    that are not on a rim.
+    (no refinement, whatever ``options`` say).
 
     Parameters and errors as :func:`scan_image`.
     """
@@ -620,7 +605,6 @@ def scan_image_for_holes(
         calibration,
         options=options,
         name=name,
-        end_order=False,
         refine=False,
     )
 
