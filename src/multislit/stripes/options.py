@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from multislit.stripes.centres import CENTRE_METHODS, DEFAULT_K_SIGMA
-from multislit.stripes.linking import DEFAULT_MIN_LENGTH
+from multislit.stripes.chains import DEFAULT_MIN_LENGTH
 from multislit.stripes.validation import CHANNEL_CHOICES, SlitExtractionError
 
 __all__ = ["ExtractionOptions", "check_fields"]
