@@ -10,7 +10,12 @@ from scipy.special import erf
 from multislit.sim import RigSpec, SimulatedRig, render
 from multislit.sim.evaluate import _centres_in, _near_centres
 from multislit.sim.scene import make_scene
-from multislit.stripes import StripeCentres, extract_slits
+from multislit.stripes import (
+    ExtractionOptions,
+    SlitExtractionError,
+    StripeCentres,
+    extract_slits,
+)
 from multislit.stripes.ridges import chain_angles, join_collinear, merge_passes
 
 
@@ -246,3 +251,14 @@ def test_the_stripes_on_box_tops_are_found():
     for d in (-1, 0, 1):
         hit |= slit[np.clip(r_[on] + d, 0, h - 1), c_[on]] >= 0
     assert hit.mean() >= 0.99
+
+
+def test_the_column_pass_can_be_left_out():
+    img, _, _ = _leaning(75.0)
+    assert extract_slits(img).by_column.sum() > 1000
+    ex = extract_slits(img, leaning=False)
+    assert not ex.by_column.any() and np.all(ex.v == np.rint(ex.v))
+    ext = ExtractionOptions(leaning=False)
+    assert not extract_slits(img, **ext.kwargs()).by_column.any()
+    with pytest.raises(SlitExtractionError, match="leaning must be True or False"):
+        extract_slits(img, leaning="yes")

@@ -135,6 +135,7 @@ def extract_slits(
     reject_texture: bool = False,
     channel: str | None = None,
     order: str = "rgb",
+    leaning: bool = True,
 ) -> SlitExtraction:
     """Stripe centre points, their segments and the dot image of one camera image.
 
@@ -184,6 +185,11 @@ def extract_slits(
     order : {'rgb', 'bgr'}
         The order of a colour image's planes: ``"bgr"`` for arrays from ``cv2.imread``.
         Default ``"rgb"``.
+    leaning : bool
+        Find the stripes that lean towards the horizontal too (the column pass). Default
+        True; False: the row pass only (stripes up to about 56 degrees from the vertical), for
+        images known to hold no others (the calibration's target and reference boards) or
+        where time counts more.
 
     Returns
     -------
@@ -199,6 +205,8 @@ def extract_slits(
     plane = resolve_channel(image, channel, order=order)
     img = np.ascontiguousarray(as_image(image, channel=plane, order=order))
     background = "opening" if reject_texture else "median"
+    if not isinstance(leaning, bool | np.bool_):
+        raise SlitExtractionError(f"leaning must be True or False, got {leaning!r}")
     if method not in CENTRE_METHODS:
         raise SlitExtractionError(f"method must be one of {CENTRE_METHODS}, got {method!r}")
     if not math.isfinite(k_sigma) or k_sigma < 0:
@@ -238,6 +246,7 @@ def extract_slits(
         linked = segment >= 0
         centres = StripeCentres(*(a[linked] for a in centres))
         segment = segment[linked]
+    if reject_texture or not leaning:
         none = np.zeros(0, np.int64)
         merged = merge_passes(centres, segment, _no_centres(), none, link, 0.0, (none, none))
     else:
