@@ -12,7 +12,7 @@ from multislit.calibrate import calibrate_capture
 from multislit.errors import IdentificationError, MeasurementError
 from multislit.identify import IdentifyOptions, identify
 from multislit.identify.evidence import dot_evidence, frame_dots
-from multislit.identify.pieces import _group_medians, gaps, windows
+from multislit.identify.pieces import _group_medians, gaps, gaps_across, windows
 from multislit.identify.result import SOURCES
 from multislit.reconstruct import ScanOptions, rig_of
 from multislit.sim.evaluate import identification_metrics
@@ -106,6 +106,34 @@ def test_gaps_pair_the_pieces_side_by_side_and_measure_their_spacing():
     # farther apart than max_gap_px: no gap
     near = gaps(u, v, piece, 20.0, 3)
     assert (2, 3) not in zip(near.a.tolist(), near.b.tolist(), strict=True)
+
+
+def test_gaps_across_stripes_that_lean_towards_the_horizontal():
+    """Three near-horizontal stripes found along the columns (rows 10, 20, 30 over columns
+    0-39) and a vertical one beside them (column 60): the horizontal ones pair along the
+    columns, the lower slit's side first (below for stripes leaning right going down, above
+    for those leaning left), their points paired column by column; no pieces: no gaps."""
+    cols = np.arange(40.0)
+    u = np.r_[np.tile(cols, 3), np.full(40, 60.0)]
+    v = np.r_[np.repeat([10.0, 20.0, 30.0], 40), np.arange(40.0)]
+    piece = np.repeat(np.arange(4), 40).astype(np.int64)
+    by_col = np.r_[np.ones(120, bool), np.zeros(40, bool)]
+    for lean, pairs in ((1.5, {(1, 0), (2, 1)}), (-1.5, {(0, 1), (1, 2)})):
+        angle = np.where(by_col, lean, 0.0)
+        g = gaps_across(u, v, piece, by_col, angle, max_gap_px=30.0, min_rows=3)
+        got = set(zip(g.a.tolist(), g.b.tolist(), strict=True))
+        # along the rows a horizontal stripe meets the vertical one in one row: no gap
+        assert got == pairs
+        for i, (a, b) in enumerate(zip(g.a, g.b, strict=True)):
+            pa = g.a_order[g.a_start[i] : g.a_start[i + 1]]
+            pb = g.b_order[g.b_start[i] : g.b_start[i + 1]]
+            assert np.all(piece[pa] == a) and np.all(piece[pb] == b)
+            assert len(pa) == 40 and np.array_equal(u[pa], u[pb])
+    # without pieces found along the columns: the gaps along the rows alone
+    g = gaps_across(u, v, piece, np.zeros(160, bool), np.zeros(160), 30.0, 3)
+    assert g.num_gaps == gaps(u, v, piece, 30.0, 3).num_gaps
+    none = gaps(u, v, np.full(160, -1), 30.0, 3)
+    assert none.num_gaps == 0 and none.a_start.tolist() == [0]
 
 
 @settings(max_examples=60, deadline=None)

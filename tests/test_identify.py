@@ -409,8 +409,9 @@ def test_junctions_of_two_slits_are_trimmed_further():
 def test_coverage_losses_classify_every_stripe_pixel(results, scenes_capture):
     from types import SimpleNamespace
 
-    # two rows, four stripes (slits 0..3, 3 px wide, centres at columns 6, 16, 26, 34)
-    truth = np.full((2, 40), -1)
+    # three rows, four stripes (slits 0..3, 3 px wide, centres at columns 6, 16, 26, 34; as
+    # tall as wide, so their centres are taken along the rows); points in rows 0 and 1 only
+    truth = np.full((3, 40), -1)
     for k, c in enumerate((6, 16, 26, 34)):
         truth[:, c - 1 : c + 2] = k
     ident = SimpleNamespace(
@@ -422,12 +423,12 @@ def test_coverage_losses_classify_every_stripe_pixel(results, scenes_capture):
     got = coverage_losses(ident, truth)
     assert got == pytest.approx(
         {
-            "covered": 1 / 8,
-            "unlinked": 1 / 8,
-            "segment_unidentified": 1 / 8,
-            "wrong": 1 / 8,
-            "point_left_out": 1 / 8,
-            "no_centre": 3 / 8,
+            "covered": 1 / 12,
+            "unlinked": 1 / 12,
+            "segment_unidentified": 1 / 12,
+            "wrong": 1 / 12,
+            "point_left_out": 1 / 12,
+            "no_centre": 7 / 12,
         }
     )
     # on a scene: the shares sum to 1 and "covered" is the coverage

@@ -22,7 +22,9 @@ def test_options_round_trip_and_defaults(tmp_path):
     assert o.identification.method == "geometry" and o.identification.min_confidence is None
     assert o.identification.confidence == 0.98 and o.refinement.min_angle_deg == 2.0
     custom = ScanOptions(
-        ExtractionOptions(channel="auto", reject_texture=True, method="steger", k_sigma=6),
+        ExtractionOptions(
+            channel="auto", reject_texture=True, method="steger", k_sigma=6, leaning=False
+        ),
         IdentifyOptions(method="template", min_confidence=0.5, depth_range=(500, 1500)),
         RefineOptions(refine_centres=False, min_angle_deg=5),
     )
@@ -45,6 +47,7 @@ def test_options_round_trip_and_defaults(tmp_path):
         ({"extraction": {"k_sigma": -1}}, "k_sigma must be a positive number"),
         ({"extraction": {"min_length": 2.5}}, "min_length must be an integer"),
         ({"extraction": {"method": "mean"}}, "method must be one of"),
+        ({"extraction": {"leaning": "no"}}, "leaning must be true or false"),
         ({"identification": {"min_confidence": 2}}, "min_confidence must be a number in"),
         ({"refinement": {"min_angle_deg": "2"}}, "min_angle_deg must be a number of degrees"),
         ({"refinement": {"refine_centres": 1}}, "refine_centres must be true or false"),

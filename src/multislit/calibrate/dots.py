@@ -404,7 +404,9 @@ def board_dots(
     clearance and ratio), and each dot's distance to the nearest stripe centre (px)."""
     out, dist_l = [], []
     for img in images:
-        ex = extract_slits(img, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px)
+        ex = extract_slits(
+            img, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px, leaning=False
+        )
         found = find_dots(ex.dots, ex.noise_sigma, ex.dot_size_px)
         clearance = STRIPE_CLEARANCE * ex.stripe_width_px
         dist, peak = stripe_maps(ex.u, ex.v, ex.peak, img.shape, clearance)

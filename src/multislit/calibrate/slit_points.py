@@ -43,8 +43,9 @@ from multislit.stripes import extract_slits, refine_centres
 #: default one, sized to remove dots, cuts them into two ridges either side of the centre).
 #: Dots left in the stripe image make short segments (dropped) or outliers (rejected by the
 #: robust plane fit). Steger's centres (zero of the derivative over the whole profile) are less
-#: shifted by laser speckle than the 3-point Gaussian fit at the peak.
-EXTRACT_OPTIONS = MappingProxyType({"dot_size_px": 0.5, "method": "steger"})
+#: shifted by laser speckle than the 3-point Gaussian fit at the peak. The target's stripes run
+#: near the vertical: the column pass (stripes leaning towards the horizontal) is left out.
+EXTRACT_OPTIONS = MappingProxyType({"dot_size_px": 0.5, "method": "steger", "leaning": False})
 #: Keyword arguments of :func:`multislit.stripes.refine_centres` for the labelled centres. The
 #: fit along the stripe runs within one target face, and the dot refill uses the extraction's
 #: dot size.
@@ -220,7 +221,7 @@ def stripe_lines(capture: Capture, camera: PinholeCamera | MatrixCamera) -> list
         key = np.where(keep, ex.segment * (len(faces) + 1) + face, -1)
         lines += _straight_runs(ex.u, ex.v, key)
     for path in capture.references:
-        ex = extract_slits(capture.image(path))
+        ex = extract_slits(capture.image(path), leaning=False)
         lines += _straight_runs(ex.u, ex.v, ex.segment)
     return lines
 

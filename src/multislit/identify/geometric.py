@@ -30,7 +30,13 @@ from numpy.typing import NDArray
 from multislit.identify.evidence import dot_evidence, dot_matches, frame_dots, gap_evidence
 from multislit.identify.graph import confidence_margin, label_pieces
 from multislit.identify.options import IdentifyOptions
-from multislit.identify.pieces import Windows, continuations, gaps, split_at_kinks, windows
+from multislit.identify.pieces import (
+    Windows,
+    continuations,
+    gaps_across,
+    split_at_kinks,
+    windows,
+)
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import SOURCES, Identification, PieceLabels
 from multislit.identify.rig import RigGeometry
@@ -128,12 +134,16 @@ def identify_geometry(
     # brightness steps there (another albedo or depth)
     segment = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
     segment = split_at_kinks(segment, ex.u, ex.v, _KINK_ROWS, _KINK_PX)
-    win = windows(segment, ex.v, _WINDOW_ROWS)
+    # windows along each stripe: by row, or by column where it was found along the columns
+    along = np.where(ex.by_column, ex.u, ex.v)
+    win = windows(segment, along, _WINDOW_ROWS)
     ev = dot_evidence(rig, rays, win.order, win.start, frame)
     scores = _calibrated(ev.llr.sum(axis=2).astype(np.float64))
     nw = win.num_windows
     window = Windows(win.order, win.start, win.segment, np.arange(nw)).piece_of_points(k)
-    gp = gaps(ex.u, ex.v, window, _GAP_SPACINGS * reference.spacing_px, _GAP_ROWS)
+    gp = gaps_across(
+        ex.u, ex.v, window, ex.by_column, ex.angle, _GAP_SPACINGS * reference.spacing_px, _GAP_ROWS
+    )
     # the pairs (k, k + 1) worth the dots between: both among their windows' best
     pairs = np.zeros((gp.num_gaps, rig.num_slits), bool)
     pairs[:, :-1] = ev.kept[gp.a, :-1] & ev.kept[gp.b, 1:]
@@ -191,7 +201,7 @@ def identify_geometry(
     conf[has] = np.where(slit[has] >= 0, lab.confidence[window[has]], 0.0)
     # where a segment's slit changes between two windows, the change lies somewhere in them:
     # the rows next to their boundary are left out
-    slit[_near_changes(ex.v, win, label)] = -1
+    slit[_near_changes(along, win, label)] = -1
     conf[slit < 0] = 0.0
     return Identification(
         ex.u,
@@ -228,10 +238,11 @@ def _calibrated(scores: F64) -> F64:
     return scores - max(bias, 0.0)
 
 
-def _near_changes(v: F64, win: Windows, label: I64) -> NDArray[np.bool_]:
-    """(K,) bool: the points within :data:`_JUNCTION_ROWS` rows of a boundary between two
-    windows of one segment whose labels differ (both labelled)."""
-    out = np.zeros(len(v), bool)
+def _near_changes(along: F64, win: Windows, label: I64) -> NDArray[np.bool_]:
+    """(K,) bool: the points within :data:`_JUNCTION_ROWS` rows (columns, for a segment found
+    along the columns; ``along`` (K,) px, the position along the stripe) of a boundary between
+    two windows of one segment whose labels differ (both labelled)."""
+    out = np.zeros(len(along), bool)
     nxt = np.flatnonzero(
         (win.segment[1:] == win.segment[:-1])
         & (label[1:] != label[:-1])
@@ -240,8 +251,8 @@ def _near_changes(v: F64, win: Windows, label: I64) -> NDArray[np.bool_]:
     )
     for w in nxt:  # the boundary: between window w's last point and w + 1's first
         a = win.order[win.start[w] : win.start[w + 2]]
-        mid = 0.5 * (v[win.order[win.start[w + 1] - 1]] + v[win.order[win.start[w + 1]]])
-        out[a[np.abs(v[a] - mid) <= _JUNCTION_ROWS]] = True
+        mid = 0.5 * (along[win.order[win.start[w + 1] - 1]] + along[win.order[win.start[w + 1]]])
+        out[a[np.abs(along[a] - mid) <= _JUNCTION_ROWS]] = True
     return out
 
 

@@ -195,15 +195,28 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
     r = np.rint(v[lk]).astype(np.int64)
     o = np.lexsort((u[lk], r))
     lk, r = lk[o], r[o]
-    same = r[1:] == r[:-1]
+    # the pairs of neighbouring points of two pieces in a row (a piece of a stripe leaning
+    # towards the horizontal holds a run of points in a row: its inner pairs are no gap)
+    pair = np.flatnonzero((r[1:] == r[:-1]) & (piece[lk[1:]] != piece[lk[:-1]]))
+    a, b, row = lk[pair], lk[pair + 1], r[pair]
     # each pair's width, and the widths of the gaps beside it in the row (NaN: none)
-    width = np.where(same, u[lk[1:]] - u[lk[:-1]], np.nan)
-    before = np.r_[np.nan, width[:-1]]
-    after = np.r_[width[1:], np.nan]
-    a, b = lk[:-1][same], lk[1:][same]
-    width, before, after = width[same], before[same], after[same]
-    keep = (piece[a] != piece[b]) & (u[b] - u[a] < max_gap_px)
+    width = u[b] - u[a]
+    same = row[1:] == row[:-1]
+    before = np.r_[np.nan, np.where(same, width[:-1], np.nan)]
+    after = np.r_[np.where(same, width[1:], np.nan), np.nan]
+    keep = width < max_gap_px
     a, b, width, before, after = a[keep], b[keep], width[keep], before[keep], after[keep]
+    if a.size == 0:
+        e = np.zeros(0, np.int64)
+        return Gaps(
+            e,
+            e.copy(),
+            e.copy(),
+            np.zeros(1, np.int64),
+            e.copy(),
+            np.zeros(1, np.int64),
+            np.zeros(0),
+        )
     n_beside = np.isfinite(before).astype(float) + np.isfinite(after)
     total = np.nan_to_num(before) + np.nan_to_num(after)
     beside = np.where(n_beside > 0, total / np.maximum(n_beside, 1.0), np.nan)
@@ -226,6 +239,57 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
         b[sel].astype(np.int64),
         start.copy(),
         np.exp(med[ok]),
+    )
+
+
+def gaps_across(
+    u: F64,
+    v: F64,
+    piece: I64,
+    by_column: NDArray[np.bool_],
+    angle: F64,
+    max_gap_px: float,
+    min_rows: int,
+) -> Gaps:
+    """The gaps between pieces side by side across their stripes: along the rows
+    (:func:`gaps`), and along the columns between the pieces found along the columns
+    (stripes leaning towards the horizontal, ``by_column``). A gap along a column is given
+    with the piece on the lower slit's side first: the side a stripe's left side turns to as it
+    leans from the vertical (above for a stripe leaning right going down, ``angle`` > 0, as
+    it turns on to the horizontal; below for one leaning left).
+
+    Parameters
+    ----------
+    u, v : (K,) float64, px, the points
+    piece : (K,) int64, the piece of each point (-1: none)
+    by_column : (K,) bool, the point was found along its column
+    angle : (K,) float64, rad, the stripe's direction at the point from the image's vertical
+    max_gap_px : px, pieces farther apart in a row (a column) are not neighbours there
+    min_rows : a pair sharing fewer rows (columns) is not a gap
+    """
+    rows = gaps(u, v, piece, max_gap_px, min_rows)
+    if not by_column.any():
+        return rows
+    cols = gaps(v, u, np.where(by_column, piece, -1), max_gap_px, min_rows)
+    # the piece above comes first; where the stripe leans right going down, the lower slit's
+    # side is below: the pair turns round
+    n = np.diff(cols.a_start)
+    lean = _group_medians(angle[cols.a_order], np.repeat(np.arange(len(n)), n), len(n))
+    turn = lean > 0
+    a = np.where(turn, cols.b, cols.a)
+    b = np.where(turn, cols.a, cols.b)
+    turn_pts = np.repeat(turn, n)
+    a_order = np.where(turn_pts, cols.b_order, cols.a_order)
+    b_order = np.where(turn_pts, cols.a_order, cols.b_order)
+    off = rows.a_start[-1]
+    return Gaps(
+        np.r_[rows.a, a],
+        np.r_[rows.b, b],
+        np.r_[rows.a_order, a_order],
+        np.r_[rows.a_start, cols.a_start[1:] + off],
+        np.r_[rows.b_order, b_order],
+        np.r_[rows.b_start, cols.b_start[1:] + off],
+        np.r_[rows.spacing_ratio, cols.spacing_ratio],
     )
 
 

@@ -669,7 +669,9 @@ def prepare_reference(
     h, w = np.shape(images[0])[:2]
     curves, vranges, dots, widths, dsz, spacing = [], [], [], [], [], []
     for im, nm in zip(images, names, strict=True):
-        ex = extract_slits(im, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px)
+        ex = extract_slits(
+            im, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px, leaning=False
+        )
         c, vr = _fit_curves(ex, num_slits, nm, h)
         curves.append(c)
         vranges.append(vr)

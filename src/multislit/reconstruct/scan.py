@@ -498,9 +498,12 @@ def _scan(
     ex = ident.extraction
     refine = refine and opts.refinement.refine_centres
     if refine and m.any() and ex is not None and np.isfinite(ex.stripe_width_px):
-        # all points, so that a neighbouring stripe is seen even where it is not identified
+        # all points, so that a neighbouring stripe is seen even where it is not identified;
+        # the points found along their columns (stripes leaning towards the horizontal) keep
+        # their first centre: the refinement fits along the rows
+        seg = np.where(ex.by_column, -1, ident.segment)
         u, refined = refine_centres(
-            image, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px
+            image, ident.u, ident.v, seg, ex.stripe_width_px, ex.dot_size_px
         )
     uv = np.stack([u[m], ident.v[m]], axis=1)
     pts, valid = triangulate(

@@ -225,6 +225,24 @@ def steps(rig_z: float = 1000.0) -> Scene:
     return Scene("steps", prims, {}, backdrop=("wall",))
 
 
+def box_tops(rig_z: float = 1000.0) -> Scene:
+    """Two boxes low in the view, their tops seen from above (as on a conveyor): on the tops
+    the stripes lean far towards the horizontal, 72-74 degrees from the vertical on the flat
+    top, 79-80 on the top of the box turned 11 degrees about the viewing axis (the default
+    rig; a stripe leans the further, the nearer its surface's plane passes to the projector's
+    height at the rig, and the more grazing the projector's light on it). ``info["tops"]``
+    names the boxes and their tops' normals (the boxes' local y axis)."""
+    wall_z = rig_z - 1150.0
+    flat = Box((-90.0, -185.0, rig_z - 890.0), (75.0, 28.0, 100.0), np.eye(3), 0.7, "box_flat")
+    c, s = np.cos(0.2), np.sin(0.2)
+    turned = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # rows: local x, y, z
+    rolled = Box((120.0, -140.0, rig_z - 880.0), (70.0, 25.0, 90.0), turned, 0.6, "box_turned")
+    tops = [{"name": b.name, "normal": b.A[1].tolist()} for b in (flat, rolled)]
+    return Scene(
+        "box_tops", [flat, rolled, backdrop_wall(wall_z, 0.5)], {"tops": tops}, backdrop=("wall",)
+    )
+
+
 def freeform(rig_z: float = 1000.0) -> Scene:
     """A smooth free-form body (the paper's doll, as a sum of Gaussian bumps) before a wall."""
     wall_z = rig_z - 1100.0
@@ -260,6 +278,7 @@ SCENES: dict[str, Callable[[], Scene]] = {
     "ballbar": ball_bar,
     "plane": large_plane,
     "steps": steps,
+    "box_tops": box_tops,
     "freeform": freeform,
     "textured": textured,
 }

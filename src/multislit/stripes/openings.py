@@ -205,7 +205,12 @@ def follow_stripe_opening(
 
 
 def stripe_opening(
-    hp: NDArray, length: int, tau: float, *, cells: NDArray[np.bool_] | None = None
+    hp: NDArray,
+    length: int,
+    tau: float,
+    *,
+    cells: NDArray[np.bool_] | None = None,
+    decimation: int = LEAN_DECIMATION,
 ) -> NDArray:
     """The opening that finds the dots: ``hp``'s grey opening with a line of ``length`` px,
     vertical (:func:`vertical_opening`), along the stripe where it leans
@@ -218,19 +223,21 @@ def stripe_opening(
     length : int, px, the line's length
     tau : float, intensity units, the dot threshold above the opening
     cells : (H // D, W // D) bool, the cells of :func:`~multislit.stripes.slope.lean_map`
-        (D = :data:`~multislit.stripes.slope.LEAN_DECIMATION`) where the opening follows
+        (D = ``decimation``) where the opening follows
         leaning stripes; elsewhere it stays vertical. The opening along a line is made pixel by
         pixel, so inside the cells it equals the one made everywhere. Default None: every cell
+    decimation : int, D, px, the lean map's cell (:func:`~multislit.stripes.slope.lean_map`);
+        default :data:`~multislit.stripes.slope.LEAN_DECIMATION`
 
     Returns
     -------
     (H, W) the opening, dtype of ``hp``
     """
     opened = vertical_opening(hp, length)
-    angles = lean_map(hp, slope_sigma(length))
+    angles = lean_map(hp, slope_sigma(length), decimation)
     if cells is not None:
         if cells.shape != angles.shape:
             raise ValueError(f"cells must have the lean map's shape {angles.shape}")
         angles[~cells] = np.nan
-    follow_stripe_opening(hp, opened, length, angles, LEAN_DECIMATION, tau)
+    follow_stripe_opening(hp, opened, length, angles, decimation, tau)
     return opened

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from multislit.stripes.centres import CENTRE_METHODS, DEFAULT_K_SIGMA
-from multislit.stripes.linking import DEFAULT_MIN_LENGTH
+from multislit.stripes.chains import DEFAULT_MIN_LENGTH
 from multislit.stripes.validation import CHANNEL_CHOICES, SlitExtractionError
 
 __all__ = ["ExtractionOptions", "check_fields"]
@@ -59,7 +59,12 @@ class ExtractionOptions:
         Detection threshold: a stripe's peak must stand this many noise sigmas above the
         background (the noise is at least one quantisation step of the data). Default 8.
     min_length : int, rows
-        The fewest centre points of a kept segment. Default 10.
+        The fewest centre points of a kept segment (twice as many for a stripe found along
+        the columns). Default 10.
+    leaning : bool
+        Find the stripes that lean towards the horizontal too, along the image's columns (the
+        tops of boxes; :mod:`~multislit.stripes.ridges`). Default True; False finds the
+        stripes up to about 56 degrees from the vertical only, in less time.
 
     Raises
     ------
@@ -72,6 +77,7 @@ class ExtractionOptions:
     method: str = CENTRE_METHODS[0]
     k_sigma: float = DEFAULT_K_SIGMA
     min_length: int = DEFAULT_MIN_LENGTH
+    leaning: bool = True
 
     def __post_init__(self) -> None:
         where = "extraction"
@@ -98,6 +104,10 @@ class ExtractionOptions:
             )
         if self.min_length < 1:
             raise SlitExtractionError(f"{where}.min_length must be >= 1, got {self.min_length}")
+        if not isinstance(self.leaning, bool):
+            raise SlitExtractionError(
+                f"{where}.leaning must be true or false, got {self.leaning!r}"
+            )
 
     def kwargs(self, channel: str | None = None) -> dict[str, Any]:
         """The keyword arguments of :func:`~multislit.stripes.extract_slits`; ``channel``

@@ -134,7 +134,9 @@ def refine_centres(
        while one bad row centre changes the sign of d from one window to the other.
 
     A point keeps its given centre (``ok`` False) where the refinement is not trustworthy: no
-    segment (< 0); within ``end_rows`` + R // 2 rows of its segment's end (the rows within
+    segment (< 0; give the points the extraction found along their columns,
+    :attr:`SlitExtraction.by_column`, no segment: their stripes lean towards the horizontal,
+    and the refinement centres along rows and fits along columns); within ``end_rows`` + R // 2 rows of its segment's end (the rows within
     ``end_rows`` of an end also stay out of the other rows' fits: there the extraction's and
     this dot refill mix the stripe with what lies beyond the end); fewer than ``degree + 2``
     rows in the window (3 for "auto"); another stripe point in its row within the Steger

@@ -18,7 +18,7 @@ from multislit.stripes.sizes import (
     median_stride,
     opening_length,
 )
-from multislit.stripes.slope import _slopes_at, reflect101, slope_sigma
+from multislit.stripes.slope import LEAN_DECIMATION, _slopes_at, reflect101, slope_sigma
 from multislit.stripes.validation import SlitExtractionError, as_image, positive_px
 from multislit.summaries import Summarised
 
@@ -208,6 +208,13 @@ def clip_level(img: NDArray, step: float) -> float | None:
     while j + 1 < _MAX_CLIP_SPREAD and counts[j + 1] > excess:
         j += 1
     return top - j * step
+
+
+def saturation_level_of(img: NDArray) -> float | None:
+    """The level at which ``img`` (H, W, validated) saturates, read from the data
+    (:func:`clip_level`), else the dtype maximum for integer images; None for float data
+    that does not clip."""
+    return _saturation_level(img, None)
 
 
 def _saturation_level(img: NDArray, saturation_level: float | None) -> float | None:
@@ -496,10 +503,13 @@ def separate_validated(
     saturation_level: float | None,
     background: str = "median",
     bg: NDArray | None = None,
+    lean_decimation: int = LEAN_DECIMATION,
 ) -> tuple[NDArray, NDArray, NDArray, float]:
     """Core of :func:`separate` on a validated image, native dtype (exact integer arithmetic).
 
-    ``bg``: the row background (:func:`background_validated`) if already made.
+    ``bg``: the row background (:func:`background_validated`) if already made;
+    ``lean_decimation``: the cell (px) of the lean map the opening follows the stripes by
+    (:func:`~multislit.stripes.openings.stripe_opening`).
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
     if bg is None:
@@ -510,7 +520,7 @@ def separate_validated(
     noise = noise_from_difference(img)
     length = opening_length(dot_size_px)
     # vertical, and along the stripe where it leans too far for the vertical line
-    opened = stripe_opening(hp, length, 3.0 * noise)
+    opened = stripe_opening(hp, length, 3.0 * noise, decimation=lean_decimation)
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)
