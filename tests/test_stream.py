@@ -397,6 +397,25 @@ def test_stream_gives_the_points_of_scan(calibrated: Path, serial_out: Path, tmp
 
 
 @pytest.mark.slow
+def test_stream_writes_the_dot_points_as_scan_does(calibrated, frames_dir, tmp_path, capsys):
+    """--dot-points: each frame's PLY holds the scan's points and its dots' (dot = 1)."""
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(frames_dir / "f1_steps.png", one / "f1_steps.png")
+    out, scan = tmp_path / "out", tmp_path / "scan"
+    assert main(["stream", str(calibrated), str(one), "-o", str(out), "--dot-points"]) == 0
+    assert main(["scan", str(calibrated), "-o", str(scan), "--dot-points"]) == 0
+    got, want = read_ply(out / "frame_000000.ply"), read_ply(scan / "steps.ply")
+    assert list(got) == list(want) and "dot" in got and 0 < int(got["dot"].sum()) < len(got["x"])
+    for k in want:
+        assert np.array_equal(got[k], want[k]), k
+    # the hole measurement takes no dot points
+    with pytest.raises(SystemExit) as exc:
+        main(["holes", str(calibrated), "--dot-points"])
+    assert exc.value.code == 2 and "--dot-points" in capsys.readouterr().err
+
+
+@pytest.mark.slow
 def test_two_workers_write_the_serial_files_in_order(calibrated, frames_dir, serial_out, tmp_path):
     out = tmp_path / "out"
     assert main(["stream", str(calibrated), str(frames_dir), "-o", str(out), "--workers", "2"]) == 0

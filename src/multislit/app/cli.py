@@ -335,8 +335,9 @@ _PICTURES_HELP = (
 )
 
 
-def _scan_option_flags(p: argparse.ArgumentParser) -> None:
-    """The flags of the scan's options (:class:`~multislit.reconstruct.ScanOptions`)."""
+def _scan_option_flags(p: argparse.ArgumentParser, dot_points: bool = True) -> None:
+    """The flags of the scan's options (:class:`~multislit.reconstruct.ScanOptions`);
+    ``--dot-points`` where the command writes points."""
     from multislit.identify import METHODS
     from multislit.stripes import CHANNEL_CHOICES
 
@@ -361,14 +362,15 @@ def _scan_option_flags(p: argparse.ArgumentParser) -> None:
         "projector's rays put the dots beside each piece of stripe, and its neighbours) or "
         "template (the paper's template matching with the reference images)",
     )
-    p.add_argument(
-        "--dot-points",
-        action="store_true",
-        default=None,
-        help="also measure the dots the identification by the dots' geometry identified (each "
-        "where its line of sight crosses its dot's ray): points between the slits, written "
-        "to the PLY with the property dot = 1",
-    )
+    if dot_points:
+        p.add_argument(
+            "--dot-points",
+            action="store_true",
+            default=None,
+            help="also measure the dots the identification by the dots' geometry identified (each "
+            "where its line of sight crosses its dot's ray): points between the slits, written "
+            "to the PLY with the property dot = 1",
+        )
     p.add_argument(
         "--options",
         metavar="FILE.json",
@@ -514,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--min-slits", type=int, default=3, help="fewest slits crossing a measurable hole"
     )
     ho.add_argument("--json", action="store_true", help="print the results as JSON")
-    _scan_option_flags(ho)
+    _scan_option_flags(ho, dot_points=False)
     ho.set_defaults(func=cmd_holes)
 
     st = sub.add_parser("stream", help="scan a stream of frames: camera, video or images")

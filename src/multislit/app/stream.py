@@ -93,6 +93,8 @@ class FrameResult:
     message : str, why the frame gave no points or another note of the scan; '' if none
     picture : bytes, PNG of :func:`~multislit.app.pictures.scan_picture` (the points on the
         frame) when asked for; b'' otherwise
+    dot : (K,) bool, True for the points of identified dots (``dot_points`` of the scan's
+        options; after the stripes' points), or None without them
     """
 
     points: NDArray[np.float64]
@@ -104,6 +106,7 @@ class FrameResult:
     ms: float
     message: str = ""
     picture: bytes = b""
+    dot: NDArray[np.bool_] | None = None
 
 
 def scan_frame(
@@ -151,16 +154,18 @@ def _frame_result(
     picture = b""
     if image is not None:
         picture = encode_png(scan_picture(image, res, num_slits=num_slits))
+    points, cols = res.ply_columns()
     return FrameResult(
-        res.points,
-        res.u,
-        res.v,
-        res.slit,
-        res.confidence,
+        points,
+        cols["u"],
+        cols["v"],
+        cols["slit"],
+        cols["confidence"],
         res.num_slits_found,
         ms,
         res.message,
         picture,
+        cols.get("dot"),
     )
 
 
@@ -245,6 +250,7 @@ class FrameWriter:
             v=result.v,
             slit=result.slit,
             confidence=result.confidence,
+            **({} if result.dot is None else {"dot": result.dot}),
             comment=f"multislit frame {self.frames} of {label}",
         )
         line = {

@@ -15,6 +15,12 @@
    images, posed by the slits calibrated on the target, give every slit they show points at
    several depths; all planes are refitted with them. The result says per slit where its plane
    came from (``origin``), and a slit the boards show that ends without a plane is an error.
+5. **Bundle adjustment** (:mod:`~multislit.calibrate.bundle`): the camera, the slit planes
+   (through their common axis) and the boards' poses adjusted together on the markers, the
+   target's folds, the stripes on the target (or the hand readings) and on the boards.
+6. **Dot projector** (:mod:`~multislit.calibrate.dots`): a point source and one ray per dot,
+   fitted on the dots of the boards as the bundle adjustment posed them (none, with a note,
+   without prepared reference boards: scans then identify by the template matching).
 
 Automatic planes that the points do not support are never returned: the calibration falls back
 to the hand readings (and says so in the notes) or stops with an error. So are planes that pass

@@ -2,7 +2,7 @@
 
 Under slit k, every stripe point of a piece is a 3D point (its line of sight meets plane k),
 so the piece is a 3D curve. The dots that must land beside that curve are known rays of the
-dot projector (:class:`~multislit.geometry.DotProjector`): those whose angle across the slits
+dot projector (:class:`~multislit.geometry.dots.DotProjector`): those whose angle across the slits
 lies within the slit's band (``half_band``) and whose angle along the slits lies within the
 curve's. Each lands where its ray meets the surface. Along the curve the surface is known;
 across it, it is not: a surface turned away from the dot projector puts a dot at a range

@@ -132,10 +132,12 @@ def identify_geometry(
     _, rays = rig.camera.rays(uv)
     # where a stripe runs into another surface's stripe the linking may join them; the
     # brightness steps there (another albedo or depth)
-    segment = split_at_brightness_steps(ex.segment.astype(np.int64), ex.v, ex.peak)
-    segment = split_at_kinks(segment, ex.u, ex.v, _KINK_ROWS, _KINK_PX)
-    # windows along each stripe: by row, or by column where it was found along the columns
+    # each point's position along its stripe and across it: its row and column, or its column
+    # and row where it was found along the columns
     along = np.where(ex.by_column, ex.u, ex.v)
+    across = np.where(ex.by_column, ex.v, ex.u)
+    segment = split_at_brightness_steps(ex.segment.astype(np.int64), along, ex.peak)
+    segment = split_at_kinks(segment, across, along, _KINK_ROWS, _KINK_PX)
     win = windows(segment, along, _WINDOW_ROWS)
     ev = dot_evidence(rig, rays, win.order, win.start, frame)
     scores = _calibrated(ev.llr.sum(axis=2).astype(np.float64))

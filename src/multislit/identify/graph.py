@@ -1,10 +1,10 @@
 """One labelling of all the pieces of a frame: their own dots and what their neighbours say.
 
-Every piece gets a slit or the null label ("none": not identified). The labelling maximises
+Every piece gets the slit of the labelling that maximises
 
 - each piece's own evidence: the log-likelihood ratio of its dots per slit
-  (:mod:`~multislit.identify.evidence`; 0 for the null label, a slit that puts the piece
-  outside the measuring volume is ruled out);
+  (:mod:`~multislit.identify.evidence`; a slit that puts the piece outside the measuring
+  volume is ruled out);
 - per gap (two pieces side by side in the rows, :func:`~multislit.identify.pieces.gaps`): when
   the right piece is the next slit of the left one and the surface through both stripes does
   not graze the camera's or the dot source's line of sight, a coupling (``coupling``, scaled
@@ -16,8 +16,9 @@ Every piece gets a slit or the null label ("none": not identified). The labellin
 
 The labelling is found by loopy belief propagation (max-product, damped), which gives every
 piece its belief per label; the confidence of a piece's label is its belief's share
-(softmax) against every other label, null included. A piece whose best label has less than
-the required confidence is left out, never guessed.
+(softmax) against every other slit; the support of a label is the own evidence summed over
+the group of pieces the labelling ties together. A piece whose best slit has less than the
+required confidence or support is left out, never guessed.
 
 Units: log-likelihood (nats).
 """

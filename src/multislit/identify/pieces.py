@@ -4,10 +4,11 @@ A segment of the extraction (:func:`~multislit.stripes.link_segments`) is one ru
 centres, but the linking may join two slits' stripes where they meet (at an object's edge a
 stripe on the object continues a stripe on the wall). Identification works on **windows** of a
 segment's points (:func:`windows`), scores every slit for each window
-(:mod:`~multislit.identify.evidence`), and cuts a segment into **pieces** where the windows'
-best slit changes for good (:func:`split_pieces`: the best sequence of slits along the
-segment, each change costing a penalty). Two pieces side by side in the rows form a **gap**
-(:func:`gaps`), whose dots say whether they are neighbouring slits of one surface.
+(:mod:`~multislit.identify.evidence`); the frame's labelling (:mod:`~multislit.identify.graph`)
+gives each window a slit, and a segment's **pieces** are its runs of windows with one slit.
+Two pieces side by side across their stripes form a **gap** (:func:`gaps_across`: along the
+rows, and along the columns for stripes found along the columns), whose dots say whether they
+are neighbouring slits of one surface.
 
 Units: px.
 """
@@ -26,15 +27,15 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True, eq=False)
 class Windows:
-    """The linked stripe points in windows of consecutive rows, segment by segment.
+    """The linked stripe points in windows of consecutive points along their stripe, segment
+    by segment.
 
     Attributes
     ----------
-    order : (P,) int64, point indices (into the extraction), by segment, then row
+    order : (P,) int64, point indices (into the extraction), by segment, then along the stripe
     start : (W+1,) int64, window w holds ``order[start[w]:start[w+1]]``
     segment : (W,) int64, the segment of each window
-    piece : (W,) int64, the piece of each window (pieces are numbered from 0; before
-        :func:`split_pieces`, one per segment)
+    piece : (W,) int64, the piece of each window (numbered from 0)
     """
 
     order: I64
@@ -58,18 +59,19 @@ class Windows:
         return out
 
 
-def windows(segment: I64, v: F64, rows: int) -> Windows:
+def windows(segment: I64, along: F64, rows: int) -> Windows:
     """The linked points (``segment >= 0``) in windows of about ``rows`` points each: a
     segment of n points gets ``max(1, round(n / rows))`` windows of nearly equal size.
 
     Parameters
     ----------
     segment : (K,) int64, segment id per point (-1: unlinked)
-    v : (K,) float64, px, the points' rows
+    along : (K,) float64, px, the points' positions along their stripe (their rows; their
+        columns for stripes found along the columns)
     rows : int, the windows' target length (points)
     """
     lk = np.flatnonzero(segment >= 0)
-    lk = lk[np.lexsort((v[lk], segment[lk]))]
+    lk = lk[np.lexsort((along[lk], segment[lk]))]
     seg = segment[lk]
     if lk.size == 0:
         e = np.zeros(0, np.int64)
@@ -85,72 +87,11 @@ def windows(segment: I64, v: F64, rows: int) -> Windows:
     return Windows(lk.astype(np.int64), start, seg[bounds[:-1]][seg_of_win], seg_of_win)
 
 
-@njit(cache=True)
-def _viterbi(scores, first, penalty, out):
-    """Best slit per window along each run ``first[i]:first[i+1]`` of ``scores`` (W, N), each
-    change of slit costing ``penalty``; the slits into ``out`` (W,)."""
-    n_runs = len(first) - 1
-    nslit = scores.shape[1]
-    for r in range(n_runs):
-        a, b = first[r], first[r + 1]
-        back = np.empty((b - a, nslit), np.int64)
-        cur = scores[a].copy()
-        for i in range(a + 1, b):
-            best = 0
-            for k in range(1, nslit):
-                if cur[k] > cur[best]:
-                    best = k
-            switch = cur[best] - penalty
-            nxt = np.empty(nslit)
-            for k in range(nslit):
-                if cur[k] >= switch:
-                    nxt[k] = cur[k] + scores[i, k]
-                    back[i - a, k] = k
-                else:
-                    nxt[k] = switch + scores[i, k]
-                    back[i - a, k] = best
-            cur = nxt
-        k = 0
-        for q in range(1, nslit):
-            if cur[q] > cur[k]:
-                k = q
-        out[b - 1] = k
-        for i in range(b - 1, a, -1):
-            k = back[i - a, k]
-            out[i - 1] = k
-
-
-def split_pieces(win: Windows, scores: F64, penalty: float) -> Windows:
-    """Cut each segment where its windows' best slit changes for good.
-
-    The slits along a segment are the sequence that maximises the sum of the windows' scores
-    less ``penalty`` for each change (Viterbi); each run of one slit becomes a piece.
-
-    Parameters
-    ----------
-    win : the windows
-    scores : (W, N) float64, each window's log-likelihood ratio per slit (NaN: ruled out)
-    penalty : the cost of a change of slit (log-likelihood)
-
-    Returns
-    -------
-    Windows with the new pieces, numbered in window order
-    """
-    nw = win.num_windows
-    if nw == 0:
-        return win
-    s = np.where(np.isfinite(scores), scores, -1e6).astype(np.float64)
-    first = np.flatnonzero(np.r_[True, win.segment[1:] != win.segment[:-1], True])
-    best = np.zeros(nw, np.int64)
-    _viterbi(s, first.astype(np.int64), float(penalty), best)
-    new = np.r_[True, (win.segment[1:] != win.segment[:-1]) | (best[1:] != best[:-1])]
-    return Windows(win.order, win.start, win.segment, np.cumsum(new) - 1)
-
-
 @dataclass(frozen=True, eq=False)
 class Gaps:
-    """Pairs of pieces side by side in the rows: a on the left, b next to it on the right
-    (no stripe centre between them), in the rows they share.
+    """Pairs of pieces side by side across their stripes: a on the lower slit's side (the left
+    in a row), b next to it (no stripe centre between them), in the rows (columns) they
+    share.
 
     Attributes
     ----------
@@ -255,8 +196,8 @@ def gaps_across(
     (:func:`gaps`), and along the columns between the pieces found along the columns
     (stripes leaning towards the horizontal, ``by_column``). A gap along a column is given
     with the piece on the lower slit's side first: the side a stripe's left side turns to as it
-    leans from the vertical (above for a stripe leaning right going down, ``angle`` > 0, as
-    it turns on to the horizontal; below for one leaning left).
+    leans from the vertical (below for a stripe leaning right going down, ``angle`` > 0;
+    above for one leaning left).
 
     Parameters
     ----------
@@ -271,8 +212,8 @@ def gaps_across(
     if not by_column.any():
         return rows
     cols = gaps(v, u, np.where(by_column, piece, -1), max_gap_px, min_rows)
-    # the piece above comes first; where the stripe leans right going down, the lower slit's
-    # side is below: the pair turns round
+    # the piece above comes first; where the stripe leans right going down (its left side
+    # turned downwards), the lower slit's side is below: the pair turns round
     n = np.diff(cols.a_start)
     lean = _group_medians(angle[cols.a_order], np.repeat(np.arange(len(n)), n), len(n))
     turn = lean > 0

@@ -742,7 +742,7 @@ def reference_curves(image: NDArray, num_slits: int, name: str = "ref") -> tuple
     except SlitExtractionError as exc:
         raise ReferenceImageError(str(exc)) from None
     h = np.shape(image)[0]
-    curves, vrange = _fit_curves(extract_slits(image), num_slits, name, h)
+    curves, vrange = _fit_curves(extract_slits(image, leaning=False), num_slits, name, h)
     mid = curve_u(curves, np.full(num_slits, h / 2.0))
     spacing = float(np.median(np.diff(mid))) if num_slits > 1 else float(np.shape(image)[1]) / 4
     return curves, vrange, spacing

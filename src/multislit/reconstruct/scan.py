@@ -32,7 +32,7 @@ from multislit.identify import (
     identify,
     rig_geometry,
 )
-from multislit.io import Capture
+from multislit.io import Capture, write_ply
 from multislit.io.paths import as_path
 from multislit.reconstruct.options import ScanOptions, as_scan_options
 from multislit.reconstruct.triangulation import triangulate
@@ -330,40 +330,34 @@ class ScanResult(Summarised):
             identification=ident,
         )
 
-    def write_ply(self, path: str | Path, comment: str | None = None) -> Path:
-        """Write the points as binary little-endian PLY (x y z u v slit confidence); the
-        header's comments hold ``comment`` and the scan's options (``options {...}``, JSON)."""
-        from multislit.io import write_ply
+    def ply_columns(self) -> tuple[F64, dict[str, NDArray]]:
+        """The points as written to a PLY: (M, 3) float64 mm, and the per-point columns
+        ``u``, ``v`` (px), ``slit``, ``confidence`` and, with the identified dots
+        (:attr:`dots`), ``dot`` (bool, True for a dot's point, after the stripes' points)."""
+        cols: dict[str, NDArray] = {
+            "u": self.u,
+            "v": self.v,
+            "slit": self.slit,
+            "confidence": self.confidence,
+        }
+        if self.dots is None:
+            return self.points, cols
+        d = self.dots
+        cols = {k: np.r_[c, getattr(d, k)] for k, c in cols.items()}
+        cols["dot"] = np.r_[np.zeros(len(self.points), bool), np.ones(len(d), bool)]
+        return np.concatenate([self.points, d.points]), cols
 
+    def write_ply(self, path: str | Path, comment: str | None = None) -> Path:
+        """Write the points as binary little-endian PLY (x y z u v slit confidence, and dot
+        with the identified dots); the header's comments hold ``comment`` and the scan's
+        options (``options {...}``, JSON)."""
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
         lines = [] if comment is None else [comment]
         if self.options is not None:
             lines.append("options " + json.dumps(self.options.to_dict(), separators=(",", ":")))
-        if self.dots is None:
-            write_ply(
-                p,
-                self.points,
-                u=self.u,
-                v=self.v,
-                slit=self.slit,
-                confidence=self.confidence,
-                binary=True,
-                comment=lines,
-            )
-            return p
-        d = self.dots
-        write_ply(
-            p,
-            np.concatenate([self.points, d.points]),
-            u=np.r_[self.u, d.u],
-            v=np.r_[self.v, d.v],
-            slit=np.r_[self.slit, d.slit],
-            confidence=np.r_[self.confidence, d.confidence],
-            dot=np.r_[np.zeros(len(self.points), bool), np.ones(len(d), bool)],
-            binary=True,
-            comment=lines,
-        )
+        points, cols = self.ply_columns()
+        write_ply(p, points, **cols, binary=True, comment=lines)
         return p
 
 

@@ -336,7 +336,7 @@ def _make_dots(spec: RigSpec, proj: SlitProjector) -> DotProjector:
 
 def true_dot_projector(rig: SimulatedRig) -> GeometricDotProjector:
     """The simulated rig's dot projector as the calibration's model
-    (:class:`~multislit.geometry.DotProjector`): the true source and rays, the frame's y along
+    (:class:`~multislit.geometry.dots.DotProjector`): the true source and rays, the frame's y along
     the slit projector's axis, and the reference boards' depths along the camera's axis."""
     d = rig.dots.directions
     frame = dot_frame(d, rig.projector.axis[1])
