@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from multislit.app.cli import main
-from multislit.calibrate import Calibration, calibrate_capture, format_report
+from multislit.calibrate import Calibration, calibrate_capture, format_report, pipeline
 from multislit.calibrate.camera import rms
 from multislit.calibrate.capture_camera import camera_from_capture
 from multislit.calibrate.slit_points import auto_slit_points, points_on_faces, transfer_labels
@@ -419,6 +419,26 @@ def test_unsupported_automatic_planes_without_hand_readings_is_an_error(small_ca
         CalibrationError, match="automatic projector calibration failed.*hand readings"
     ):
         calibrate_capture(cap, source="auto", labels=few_labels(small_capture))
+
+
+@pytest.mark.slow
+def test_reference_without_an_epipole_labels_no_stripes(small_capture, tmp_path, monkeypatch):
+    """Reference images whose dots cannot be followed between them (no epipole) give the
+    labels no anchors: the calibration says so and falls back to the hand readings, or stops
+    with one clear error without them."""
+    real = pipeline._reference
+
+    def no_epipole(cap, notes):
+        return dataclasses.replace(real(cap, notes), epipole_problem="2 matched dots")
+
+    monkeypatch.setattr(pipeline, "_reference", no_epipole)
+    r = calibrate_capture(small_capture)
+    assert r.source == "hand"
+    note = [n for n in r.notes if "automatic projector calibration failed" in n]
+    assert note and "could not be followed between them: 2 matched dots" in note[0], r.notes
+    cap = copy_capture(small_capture, tmp_path / "c", lambda t: t.pop("slit_points"))
+    with pytest.raises(CalibrationError, match="cannot be labelled.*--source hand"):
+        calibrate_capture(cap)
 
 
 # --------------------------------------------------------------------------- reference boards

@@ -74,7 +74,12 @@ from multislit.calibrate.slit_points import (
     hand_slit_points,
     read_capture_image,
 )
-from multislit.errors import CalibrationError, CaptureError, ReferenceImageError
+from multislit.errors import (
+    CalibrationError,
+    CaptureError,
+    IdentificationError,
+    ReferenceImageError,
+)
 from multislit.identify import ReferenceSet, capture_reference
 from multislit.io import Capture, json_safe, write_json
 from multislit.summaries import Summarised
@@ -485,14 +490,21 @@ def _auto_projector(
     if labels is None:
         img = read_capture_image(cap, cap.slits_image, "slit image")
         try:
+            if reference is not None and reference.epipole_problem:
+                raise IdentificationError(
+                    f"the dots could not be followed between them: {reference.epipole_problem}"
+                )
             lab = label_by_order(img, cap, camera=cam.from_markers, reference=reference)
-        except ReferenceImageError as exc:
+        except (ReferenceImageError, IdentificationError) as exc:
+            # the labels' anchors are the template matching's: it needs the reference images
+            # and the dot projector's epipole from them
             e3, e2, ei = np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.intp)
             empty = SlitPointSet(e3, ei, e2, ei, "auto", (("labelled", 0),))
             return (
                 empty,
                 None,
-                f"the stripes cannot be labelled without the reference images ({exc})",
+                f"the target's stripes cannot be labelled by the dots of the reference images "
+                f"({exc})",
             )
         labels = (lab.u, lab.v, lab.slit)
     pts = auto_slit_points(cap, cam.refined, labels)

@@ -171,7 +171,9 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
     sel = np.repeat(ok, n)
     start = np.r_[0, np.cumsum(n[ok])].astype(np.int64)
     # per gap, the median ratio of its width to the widths beside it (NaN: none beside)
-    med = _group_medians(np.log(ratio), np.repeat(np.arange(len(n)), n), len(n))
+    with np.errstate(divide="ignore"):  # a zero width (two pieces crossing): no ratio
+        log_ratio = np.log(ratio)
+    med = _group_medians(log_ratio, np.repeat(np.arange(len(n)), n), len(n))
     return Gaps(
         piece[a[bounds[:-1][ok]]],
         piece[b[bounds[:-1][ok]]],
