@@ -130,12 +130,12 @@ def identify_geometry(
     frame = frame_dots(ex, reference.spacing_px)
     uv = np.stack([ex.u, ex.v], axis=1)
     _, rays = rig.camera.rays(uv)
-    # where a stripe runs into another surface's stripe the linking may join them; the
-    # brightness steps there (another albedo or depth)
     # each point's position along its stripe and across it: its row and column, or its column
     # and row where it was found along the columns
     along = np.where(ex.by_column, ex.u, ex.v)
     across = np.where(ex.by_column, ex.v, ex.u)
+    # where a stripe runs into another surface's stripe the linking may join them; the
+    # brightness steps there (another albedo or depth)
     segment = split_at_brightness_steps(ex.segment.astype(np.int64), along, ex.peak)
     segment = split_at_kinks(segment, across, along, _KINK_ROWS, _KINK_PX)
     win = windows(segment, along, _WINDOW_ROWS)
