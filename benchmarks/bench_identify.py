@@ -10,7 +10,7 @@ share wrong with confidence >= 0.5, the coverage of lit stripe-centre pixels, an
 the identification per frame.
 
 Run:  .venv/bin/python benchmarks/bench_identify.py [--scale 1.0] [--seed 11] [--losses]
-      [--method geometry template]
+      [--method geometry template] [--write]
 
 The bars (>= 99.5 % correct, <= 0.1 % wrong with confidence >= 0.5, >= 90 % coverage) are for
 the rig's own resolution (scale 1). At ``--scale 0.5`` the stripes keep
@@ -18,7 +18,8 @@ their pixel width but lie half as far apart: the 49-slit rig there is as dense a
 full size (the tests use half size for 25 slits and full size for 49).
 
 ``--losses`` adds, per scene and method, where the coverage is lost
-(``sim.evaluate.coverage_losses``).
+(``sim.evaluate.coverage_losses``). ``--write`` records the tables in benchmarks/RESULTS.md (a
+section per camera scale).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from results import command_line, write_section
 
 from multislit.calibrate import calibrate_capture
 from multislit.errors import MultislitError
@@ -74,6 +76,9 @@ def main() -> None:
     ap.add_argument(
         "--losses", action="store_true", help="also print where the coverage is lost, per scene"
     )
+    ap.add_argument(
+        "--write", action="store_true", help="record the tables in benchmarks/RESULTS.md"
+    )
     args = ap.parse_args()
     if not args.scale > 0:  # also NaN
         ap.error(
@@ -112,18 +117,37 @@ def main() -> None:
                     )
                     print(rows[-1], flush=True)
 
-    print(
-        "\n| rig | scene | method | points | correct | wrong, conf >= 0.5 | coverage | ms/frame |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    print("\n".join(rows))
+    out = [
+        "| rig | scene | method | points | correct | wrong, conf >= 0.5 | coverage | ms/frame |",
+        "|---|---|---|---|---|---|---|---|",
+        *rows,
+    ]
     if losses:
-        print("\nshare of the lit stripe-centre pixels (%)")
-        print("| rig | scene | method | " + " | ".join(LOSSES) + " |")
-        print("|---|---|---|" + "---|" * len(LOSSES))
+        out += [
+            "",
+            "Where the coverage is lost: shares of the lit stripe-centre pixels (%).",
+            "",
+            "| rig | scene | method | " + " | ".join(LOSSES) + " |",
+            "|---|---|---|" + "---|" * len(LOSSES),
+        ]
         for name, scene, method, loss in losses:
             cells = " | ".join(f"{100 * loss[k]:.1f}" for k in LOSSES)
-            print(f"| {name} | {scene} | {method} | {cells} |")
+            out.append(f"| {name} | {scene} | {method} | {cells} |")
+    print("\n" + "\n".join(out))
+    if args.write:
+        text = (
+            f"Camera scale {args.scale} (1: 1280x1024), render seed {args.seed}. Bars: >= 99.5 % "
+            "of the identified points correct, <= 0.1 % wrong with confidence >= 0.5, >= 90 % of "
+            "the lit stripe-centre pixels covered. The ms/frame column is the identification "
+            "alone.\n\n" + "\n".join(out)
+        )
+        write_section(
+            f"bench_identify_{args.scale:g}",
+            f"Identification vs truth (camera scale {args.scale:g})",
+            text,
+            command_line("bench_identify.py"),
+        )
+        print("written to benchmarks/RESULTS.md")
 
 
 if __name__ == "__main__":
