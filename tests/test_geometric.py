@@ -12,6 +12,7 @@ from multislit.calibrate import calibrate_capture
 from multislit.errors import IdentificationError, MeasurementError
 from multislit.identify import IdentifyOptions, identify
 from multislit.identify.evidence import dot_evidence, frame_dots
+from multislit.identify.frame import synthetic_rig
 from multislit.identify.pieces import _group_medians, gaps, gaps_across, windows
 from multislit.identify.result import SOURCES
 from multislit.reconstruct import ScanOptions, rig_of
@@ -182,3 +183,16 @@ def test_the_scenes_meet_the_identification_bars(scenes, scene):
     assert m["correct"] >= 0.995, m
     assert m["wrong_confident"] <= 0.001, m
     assert m["coverage"] >= 0.90, m
+
+
+def test_the_kernels_warm_up_frame_is_identified_by_the_geometry():
+    """The frame that compiles the kernels runs the whole identification: every stripe gets its
+    slit (stripe k, slit k) and dots are matched, with one stripe's dots missing too."""
+    reference, images, rig = synthetic_rig()
+    for image in images:
+        ident = identify(image, reference, rig)
+        ok = ident.slit >= 0
+        assert set(ident.slit[ok].tolist()) == set(range(5))
+        stripe = np.rint((ident.u[ok] - 31.0) / 25.0).astype(int)
+        assert np.mean(stripe == ident.slit[ok]) > 0.99
+        assert ident.dots is not None and len(ident.dots) > 100

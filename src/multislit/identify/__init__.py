@@ -19,8 +19,8 @@
 - :mod:`~multislit.identify.frame`: :func:`identify`, either method on one frame.
 """
 
-from multislit.identify.frame import identify
-from multislit.identify.labelling import compile_kernels, identify_template
+from multislit.identify.frame import compile_kernels, identify
+from multislit.identify.labelling import identify_template
 from multislit.identify.matching import prepare_scoring, template_size
 from multislit.identify.options import METHODS, IdentifyOptions
 from multislit.identify.patches import (

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from multislit.errors import IdentificationError
+from multislit.geometry import PinholeCamera
+from multislit.geometry.dots import DotProjector, angles_of, dot_frame
 from multislit.identify.geometric import identify_geometry
-from multislit.identify.labelling import identify_template
+from multislit.identify.labelling import compile_kernels as compile_template_kernels
+from multislit.identify.labelling import identify_template, synthetic_frame
 from multislit.identify.options import IdentifyOptions
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import Identification
-from multislit.identify.rig import RigGeometry
+from multislit.identify.rig import RigGeometry, rig_geometry
 from multislit.stripes import SlitExtraction, as_image, extract_slits
 
 
@@ -91,3 +95,56 @@ def identify(
     if opts.depth_range is not None:
         rig = rig.with_depth_range(opts.depth_range)
     return identify_geometry(ex, reference, rig, opts)
+
+
+def synthetic_rig() -> tuple[ReferenceSet, list, RigGeometry]:
+    """The frame of :func:`~multislit.identify.labelling.synthetic_frame` with a rig that puts
+    its stripes and dots on a wall 1 m in front of the camera: slit k through the k-th stripe
+    (planes through a vertical axis 200 mm left of the camera), one dot ray from a source 150
+    mm left of the camera through each dot.
+
+    Returns
+    -------
+    reference, images : those of :func:`~multislit.identify.labelling.synthetic_frame`
+    rig : the RigGeometry
+    """
+    reference, images, dot_uv, stripe_u = synthetic_frame()
+    w, h = reference.image_size
+    f, depth = 400.0, 1000.0
+    camera = PinholeCamera(f, f, w / 2, h / 2, image_size=(w, h))
+    axis = np.array([-200.0, 0.0, 0.0])
+    x = (stripe_u - w / 2) * depth / f
+    normal = np.stack([np.full_like(x, depth), np.zeros_like(x), -(x - axis[0])], axis=1)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    planes = np.c_[normal, -normal @ axis]
+    source = np.array([-150.0, 0.0, 0.0])
+    wall = np.c_[(dot_uv - [w / 2, h / 2]) * depth / f, np.full(len(dot_uv), depth)]
+    rays = wall - source
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    frame = dot_frame(rays, [0.0, 1.0, 0.0])
+    phi, psi, _ = angles_of(rays, frame)
+    dots = DotProjector(
+        source,
+        frame,
+        phi,
+        psi,
+        seen=np.full(len(phi), 2),
+        residual_px=np.zeros(len(phi)),
+        reference_depths=np.array([0.9, 1.1]) * depth,
+    )
+    return reference, images, rig_geometry(camera, planes, dots)
+
+
+def compile_kernels() -> None:
+    """Compile the identification's Numba kernels now, both methods'.
+
+    Numba compiles each kernel on first use (seconds) and caches the machine code on disk
+    beside the package, so only the first run after an install pays it. ``make demo`` and
+    ``make test`` call this once after installing. The template matching's kernels
+    (:func:`~multislit.identify.labelling.compile_kernels`), then the identification by the
+    dots' geometry on the frames of :func:`synthetic_rig`.
+    """
+    compile_template_kernels()
+    reference, images, rig = synthetic_rig()
+    for image in images:
+        identify(image, reference, rig)

@@ -254,25 +254,37 @@ def _vouched_points(
     return has
 
 
-def compile_kernels() -> None:
-    """Compile the identification's Numba kernels now.
+#: The synthetic frame of :func:`synthetic_frame`: image size (px), slits, their spacing (px)
+#: and the first stripe's column (px), and the dots' shift between the two references (px).
+_SYNTH_W, _SYNTH_H, _SYNTH_SLITS, _SYNTH_SPACING, _SYNTH_U0, _SYNTH_SHIFT = (
+    160,
+    120,
+    5,
+    25.0,
+    31.0,
+    3,
+)
 
-    Numba compiles each kernel on first use (seconds) and caches the machine code on disk
-    beside the package, so only the first run after an install pays it. ``make demo`` and
-    ``make test`` call this once after installing. It runs :func:`identify` on a small
-    synthetic frame (five slits, two flat references), once with dots beside every stripe and
-    once with one stripe's dots missing (its templates flat: left out), after the reference
-    preparation's patch sampler (:func:`~multislit.identify.patches.compile_kernels`).
+
+def synthetic_frame() -> tuple[ReferenceSet, list[NDArray[np.uint8]], F64, F64]:
+    """A small synthetic frame for compiling the kernels: five vertical slits (stripes at
+    columns 31, 56, ... px) over 400 dots of 2x2 px on a 160x120 image, and two flat
+    references whose dots move along the rows.
+
+    Returns
+    -------
+    reference : the ReferenceSet of the two references
+    images : two uint8 images: dots beside every stripe, and one stripe's dots missing
+    dot_uv : (D, 2) float64, px, the dots' centres
+    stripe_u : (5,) float64, px, the stripes' columns
     """
-    from multislit.identify.patches import compile_kernels as compile_patch_kernels
-
-    compile_patch_kernels()
-    w, h, n, spacing, shift = 160, 120, 5, 25.0, 3
+    w, h, n, spacing, shift = _SYNTH_W, _SYNTH_H, _SYNTH_SLITS, _SYNTH_SPACING, _SYNTH_SHIFT
     rng = np.random.default_rng(0)
     dots = np.zeros((h, w), np.float32)
-    for y, x in zip(rng.integers(0, h - 2, 400), rng.integers(0, w - 2, 400), strict=True):
+    yx = np.stack([rng.integers(0, h - 2, 400), rng.integers(0, w - 2, 400)], axis=1)
+    for y, x in yx:
         dots[y : y + 2, x : x + 2] = 100.0
-    us = 30.0 + spacing * np.arange(n)
+    us = _SYNTH_U0 - 1.0 + spacing * np.arange(n)
     curves = np.zeros((2, n, 4))
     curves[0, :, -1] = us
     curves[1, :, -1] = us + shift
@@ -291,6 +303,26 @@ def compile_kernels() -> None:
         0.02,
     )
     stripes = 200.0 * np.exp(-0.5 * ((np.arange(w) - us[:, None] - 1) / 1.3) ** 2).sum(axis=0)
-    for scan_dots in (dots, np.where(np.abs(np.arange(w) - us[2]) < 12, 0, dots)):
-        image = np.clip(10.0 + 1.2 * scan_dots + stripes, 0, 255).astype(np.uint8)
+    images = [
+        np.clip(10.0 + 1.2 * scan_dots + stripes, 0, 255).astype(np.uint8)
+        for scan_dots in (dots, np.where(np.abs(np.arange(w) - us[2]) < 12, 0, dots))
+    ]
+    return reference, images, yx[:, ::-1] + 0.5, us + 1.0
+
+
+def compile_kernels() -> None:
+    """Compile the template identification's Numba kernels now.
+
+    Numba compiles each kernel on first use (seconds) and caches the machine code on disk
+    beside the package, so only the first run after an install pays it. It runs
+    :func:`identify_template` on the frame of :func:`synthetic_frame`, once with dots beside
+    every stripe and once with one stripe's dots missing (its templates flat: left out), after
+    the reference preparation's patch sampler
+    (:func:`~multislit.identify.patches.compile_kernels`).
+    """
+    from multislit.identify.patches import compile_kernels as compile_patch_kernels
+
+    compile_patch_kernels()
+    reference, images, _, _ = synthetic_frame()
+    for image in images:
         identify_template(image, reference)

@@ -441,7 +441,8 @@ def find_centres_validated(
     # smoothed samples at c-2 .. c+2; re-centre on the smoothed maximum among c-1 .. c+1
     c, a, b, cc = _peak_samples(s, r, c, _binomial_weights(taps))
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
-    fwhm = sw if sw is not None else float(np.nanmedian(width)) if r.size else 3.0
+    known = width[np.isfinite(width)]
+    fwhm = sw if sw is not None else float(np.median(known)) if known.size else 3.0
     if not math.isfinite(fwhm):
         fwhm = 3.0
     if method in ("centroid", "steger"):

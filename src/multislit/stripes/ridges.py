@@ -576,12 +576,7 @@ def merge_passes(
     cols = StripeCentres(*(x[keep_c] for x in cols))
     col_segment = col_segment[keep_c]
     nr = rows.u.size
-    u = np.r_[rows.u, cols.u]
-    v = np.r_[rows.v, cols.v]
-    by_col = np.r_[np.zeros(nr, bool), np.ones(cols.u.size, bool)]
-    off = int(row_segment.max()) + 1 if nr else 0
-    seg = np.r_[row_segment, np.where(col_segment >= 0, col_segment + off, -1)].astype(np.int64)
-    ang = chain_angles(u, v, seg, by_col)
+    u, v, by_col, seg, ang = _stacked(rows, row_segment, cols, col_segment)
     drop = np.zeros(u.size, bool)
     i, j = _shared(rows.u, rows.v, row_segment, cols.u, cols.v)
     if i.size:
@@ -603,13 +598,7 @@ def merge_passes(
         linked = col_segment >= 0
         cols = StripeCentres(*(x[linked] for x in cols))
         col_segment = col_segment[linked]
-        nr = rows.u.size
-        u = np.r_[rows.u, cols.u]
-        v = np.r_[rows.v, cols.v]
-        by_col = np.r_[np.zeros(nr, bool), np.ones(cols.u.size, bool)]
-        off = int(row_segment.max()) + 1 if nr else 0
-        seg = np.r_[row_segment, col_segment + off].astype(np.int64)
-        ang = chain_angles(u, v, seg, by_col)
+        u, v, by_col, seg, ang = _stacked(rows, row_segment, cols, col_segment)
     peak = np.r_[rows.peak, cols.peak]
     width = np.r_[rows.width, cols.width]
     # one numbering, by the segments' mean u (as the linking numbers them)
@@ -629,6 +618,20 @@ def merge_passes(
         ang[order],
         by_col[order],
     )
+
+
+def _stacked(
+    rows: StripeCentres, row_segment: I64, cols: StripeCentres, col_segment: I64
+) -> tuple[F64, F64, NDArray[np.bool_], I64, F64]:
+    """The two passes' points in one list, the row pass's first: u, v (px), by_column, the
+    segments (the column pass's numbered after the row pass's; -1: none) and the angles."""
+    nr = rows.u.size
+    u = np.r_[rows.u, cols.u]
+    v = np.r_[rows.v, cols.v]
+    by_col = np.r_[np.zeros(nr, bool), np.ones(cols.u.size, bool)]
+    off = int(row_segment.max()) + 1 if nr else 0
+    seg = np.r_[row_segment, np.where(col_segment >= 0, col_segment + off, -1)].astype(np.int64)
+    return u, v, by_col, seg, chain_angles(u, v, seg, by_col)
 
 
 def merge_dots(row_dots: F32, col_dots: F32, u: F64, v: F64, stripe_width_px: float) -> F32:
