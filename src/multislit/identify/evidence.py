@@ -465,6 +465,19 @@ def _curve(C, rays, order, a0, nt, plane, O, F, R, t, ps, ph, rr, idx):
 
 
 @njit(cache=True, inline="always")
+def _first_from(dpsi, d_order, lo, hi, psmin):
+    """The first position q in ``lo .. hi`` of a bin of ``d_order`` (its dots by psi) whose
+    dot has ``dpsi`` >= ``psmin`` (``hi``: none)."""
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if dpsi[d_order[mid]] < psmin:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, inline="always")
 def _at(ps, ph, rr, idx, nt, psj):
     """The curve's (phi, range) at ``psj``, linear between its points sorted by ``psi``."""
     m = 0
@@ -634,13 +647,7 @@ def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb,
     b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
     b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
     for b in range(b0, b1 + 1):
-        lo, hi = b_start[b], b_start[b + 1]
-        while lo < hi:  # the bin's first dot with psi >= psmin
-            mid = (lo + hi) // 2
-            if dpsi[d_order[mid]] < psmin:
-                lo = mid + 1
-            else:
-                hi = mid
+        lo = _first_from(dpsi, d_order, b_start[b], b_start[b + 1], psmin)
         for q in range(lo, b_start[b + 1]):
             j = d_order[q]
             psj = dpsi[j]
@@ -847,13 +854,7 @@ def _gap_kernel(
             score[:] = 0.0
             count[:] = 0
             for bb in range(b0, b1 + 1):
-                lo, hi = b_start[bb], b_start[bb + 1]
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if dpsi[d_order[mid]] < psmin:
-                        lo = mid + 1
-                    else:
-                        hi = mid
+                lo = _first_from(dpsi, d_order, b_start[bb], b_start[bb + 1], psmin)
                 for q in range(lo, b_start[bb + 1]):
                     j = d_order[q]
                     psj = dpsi[j]
