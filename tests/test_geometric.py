@@ -13,6 +13,7 @@ from multislit.errors import IdentificationError, MeasurementError
 from multislit.identify import IdentifyOptions, identify
 from multislit.identify.evidence import dot_evidence, frame_dots
 from multislit.identify.frame import synthetic_rig
+from multislit.identify.graph import label_pieces
 from multislit.identify.pieces import _group_medians, gaps, gaps_across, windows
 from multislit.identify.result import SOURCES
 from multislit.reconstruct import ScanOptions, rig_of
@@ -196,3 +197,35 @@ def test_the_kernels_warm_up_frame_is_identified_by_the_geometry():
         stripe = np.rint((ident.u[ok] - 31.0) / 25.0).astype(int)
         assert np.mean(stripe == ident.slit[ok]) > 0.99
         assert ident.dots is not None and len(ident.dots) > 100
+
+
+def test_two_stripes_side_by_side_couple_once_however_long():
+    """Four windows of a stripe (continuing one another) beside four of a stripe the dots
+    put at slit 1: each window's own dots say 2 nats for slit 5. Coupled gap by gap, the
+    neighbouring slit 2 wins (4 gaps x 6 nats x 24/40 rows); as one pair sharing a coupling of
+    6 nats, the dots' 8 nats win."""
+    n = 8
+    unary = np.zeros((8, n))
+    unary[:4, 1] = 50.0  # the left stripe's windows: slit 1
+    unary[4:, 5] = 2.0  # the right stripe's: a little for slit 5
+    ga, gb = np.arange(4), np.arange(4, 8)
+    ca, cb = np.r_[0, 1, 2, 4, 5, 6], np.r_[1, 2, 3, 5, 6, 7]
+    common = {
+        "gap_a": ga,
+        "gap_b": gb,
+        "gap_bonus": np.zeros((4, n)),
+        "gap_continuous": np.ones((4, n), bool),
+        "gap_rows": np.full(4, 24),
+        "cont_a": ca,
+        "cont_b": cb,
+        "cont_bonus": np.full(6, 10.0),
+        "cont_change": np.full(6, 10.0),
+        "coupling": 6.0,
+        "repeat_penalty": 30.0,
+        "split_penalty": 0.0,
+    }
+    each = label_pieces(unary, **common)
+    once = label_pieces(unary, **common, gap_pair=np.zeros(4, np.int64))
+    assert each.slit[4:].tolist() == [2] * 4
+    assert once.slit[4:].tolist() == [5] * 4
+    assert each.slit[:4].tolist() == once.slit[:4].tolist() == [1] * 4

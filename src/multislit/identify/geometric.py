@@ -169,6 +169,7 @@ def identify_geometry(
         bonus,
         change,
         coupling=_COUPLING * regular,
+        gap_pair=win.segment[gp.a] * (int(win.segment.max()) + 1) + win.segment[gp.b],
         repeat_penalty=_REPEAT_PENALTY,
         split_penalty=_SPLIT,
     )

@@ -191,6 +191,7 @@ def label_pieces(
     coupling: float | F64,
     repeat_penalty: float,
     split_penalty: float,
+    gap_pair: I64 | None = None,
 ) -> Labelling:
     """The labelling of the frame's pieces (see the module's docstring).
 
@@ -209,6 +210,11 @@ def label_pieces(
     coupling : log-likelihood gained by a gap whose pieces are neighbouring slits of one
         surface (for the full :data:`_COUPLING_ROWS` shared rows; less for fewer); a number,
         or (G,) one per gap
+    gap_pair : (G,) int64, the pair of stripes (segments) each gap lies between, or None. That
+        two stripes side by side are neighbouring slits is one fact however long they run
+        side by side: the gaps of one pair share its coupling by their rows, in full for
+        :data:`_COUPLING_ROWS` shared rows in all (the dots between them, ``gap_bonus``, count
+        gap by gap). None: each gap couples on its own.
     repeat_penalty : log-likelihood lost by a gap whose pieces carry one slit
     split_penalty : log-likelihood lost by a gap whose pieces carry two slits that are not
         neighbours of one surface (a step in depth)
@@ -219,9 +225,14 @@ def label_pieces(
     """
     s, n = unary.shape
     u = np.where(np.isfinite(unary), unary, -1e9)
-    w = np.minimum(1.0, np.asarray(gap_rows, np.float64) / _COUPLING_ROWS)
+    rows = np.asarray(gap_rows, np.float64)
+    w = np.minimum(1.0, rows / _COUPLING_ROWS)
     cont = gap_continuous & np.isfinite(gap_bonus)
-    cw = np.broadcast_to(np.asarray(coupling, np.float64), w.shape) * w
+    share = w
+    if gap_pair is not None and rows.size:
+        _, pair = np.unique(np.asarray(gap_pair), return_inverse=True)
+        share = rows / np.maximum(np.bincount(pair, rows)[pair], _COUPLING_ROWS)
+    cw = np.broadcast_to(np.asarray(coupling, np.float64), w.shape) * share
     theta = np.where(cont, cw[:, None] + gap_bonus, np.nan)
     belief = _propagate(
         np.ascontiguousarray(u, np.float64),
