@@ -119,13 +119,38 @@ def _continuation_message(h, bonus, change, out):
         out[k] = max(_max_except(h, t1, t2, t3, k, -2) - change, h[k] + bonus)
 
 
+@njit(cache=True, inline="always")
+def _gather(unary, ga, gb, ca, cb, fwd, bwd, belief):
+    """``belief`` (S, L) = ``unary`` plus every message into each piece."""
+    ng = len(ga)
+    belief[:, :] = unary
+    for e in range(fwd.shape[0]):
+        a = ga[e] if e < ng else ca[e - ng]
+        b = gb[e] if e < ng else cb[e - ng]
+        for k in range(fwd.shape[1]):
+            belief[b, k] += fwd[e, k]
+            belief[a, k] += bwd[e, k]
+
+
+@njit(cache=True, inline="always")
+def _damped(old, new, damping):
+    """``old`` (L,) moved towards ``new`` (L,) less its maximum, keeping the share
+    ``damping``; returns the largest move."""
+    m = new.max()
+    moved = 0.0
+    for k in range(len(old)):
+        x = damping * old[k] + (1.0 - damping) * (new[k] - m)
+        moved = max(moved, abs(x - old[k]))
+        old[k] = x
+    return moved
+
+
 @njit(cache=True)
 def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, sweeps, damping):
     """Loopy max-product belief propagation; the beliefs (S, L)."""
-    s, nl = unary.shape
+    nl = unary.shape[1]
     ng = len(ga)
-    nc = len(ca)
-    ne = ng + nc
+    ne = ng + len(ca)
     # messages: edge e forward (to its second piece) and backward (to its first)
     fwd = np.zeros((ne, nl))
     bwd = np.zeros((ne, nl))
@@ -133,46 +158,24 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, swee
     tmp = np.empty(nl)
     for _ in range(sweeps):
         moved = 0.0
-        belief[:, :] = unary
+        _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
         for e in range(ne):
             a = ga[e] if e < ng else ca[e - ng]
             b = gb[e] if e < ng else cb[e - ng]
-            for k in range(nl):
-                belief[b, k] += fwd[e, k]
-                belief[a, k] += bwd[e, k]
-        for e in range(ne):
-            a = ga[e] if e < ng else ca[e - ng]
-            b = gb[e] if e < ng else cb[e - ng]
-            # forward: from a (without what b told it)
-            h = belief[a] - bwd[e]
-            if e < ng:
-                _gap_message(h, theta[e], penalty[e], split[e], True, tmp)
-            else:
-                _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
-            m = tmp.max()
-            for k in range(nl):
-                x = damping * fwd[e, k] + (1.0 - damping) * (tmp[k] - m)
-                moved = max(moved, abs(x - fwd[e, k]))
-                fwd[e, k] = x
-            h = belief[b] - fwd[e]
-            if e < ng:
-                _gap_message(h, theta[e], penalty[e], split[e], False, tmp)
-            else:
-                _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
-            m = tmp.max()
-            for k in range(nl):
-                x = damping * bwd[e, k] + (1.0 - damping) * (tmp[k] - m)
-                moved = max(moved, abs(x - bwd[e, k]))
-                bwd[e, k] = x
+            for forward in (True, False):
+                # from one end of the edge, without what the other end told it
+                if forward:
+                    h = belief[a] - bwd[e]
+                else:
+                    h = belief[b] - fwd[e]
+                if e < ng:
+                    _gap_message(h, theta[e], penalty[e], split[e], forward, tmp)
+                else:
+                    _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
+                moved = max(moved, _damped(fwd[e] if forward else bwd[e], tmp, damping))
         if moved < _SETTLED:
             break
-    belief[:, :] = unary
-    for e in range(ne):
-        a = ga[e] if e < ng else ca[e - ng]
-        b = gb[e] if e < ng else cb[e - ng]
-        for k in range(nl):
-            belief[b, k] += fwd[e, k]
-            belief[a, k] += bwd[e, k]
+    _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
     return belief
 
 
