@@ -11,10 +11,10 @@ import multislit as ms
 from multislit.calibrate import calibrate_capture
 from multislit.errors import IdentificationError, MeasurementError
 from multislit.identify import IdentifyOptions, identify
-from multislit.identify.evidence import dot_evidence, frame_dots
+from multislit.identify.evidence import dot_evidence, frame_dots, window_stripes
 from multislit.identify.frame import synthetic_rig
 from multislit.identify.graph import label_pieces
-from multislit.identify.pieces import _group_medians, gaps, gaps_across, windows
+from multislit.identify.pieces import group_medians, gaps, gaps_across, windows
 from multislit.identify.result import SOURCES
 from multislit.reconstruct import ScanOptions, rig_of
 from multislit.sim.evaluate import identification_metrics
@@ -46,7 +46,9 @@ def test_a_window_s_own_dots_prefer_its_slit(frame):
     _, truth, ex, rig, ref = frame
     _, rays = rig.camera.rays(np.stack([ex.u, ex.v], axis=1))
     win = windows(ex.segment.astype(np.int64), ex.v, 24)
-    ev = dot_evidence(rig, rays, win.order, win.start, frame_dots(ex, ref.spacing_px))
+    direction, peak = window_stripes(ex, win.order, win.start)
+    frame = frame_dots(ex, ref.spacing_px)
+    ev = dot_evidence(rig, rays, win.order, win.start, frame, direction, peak)
     assert ev.llr.shape == (win.num_windows, rig.num_slits, 2)
     right = []
     for i in range(win.num_windows):
@@ -145,10 +147,10 @@ def test_gaps_across_stripes_that_lean_towards_the_horizontal():
         max_size=40,
     )
 )
-def test_group_medians_are_numpy_s_medians_of_the_finite_values(rows):
+def testgroup_medians_are_numpy_s_medians_of_the_finite_values(rows):
     g = np.array([r[0] for r in rows], np.int64)
     x = np.array([r[1] for r in rows], float)
-    got = _group_medians(x, g, 6)
+    got = group_medians(x, g, 6)
     for k in range(6):
         y = x[(g == k) & np.isfinite(x)]
         if y.size:

@@ -38,17 +38,24 @@ import cv2
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
+from multislit.identify.pieces import group_medians
 from multislit.identify.result import DotMatches
 from multislit.identify.rig import RigGeometry
 from multislit.stripes.dots import (
     MIN_DOT_RATIO,
     STRIPE_CLEARANCE,
     DotCentres,
+    DotResponse,
+    dot_response,
     dots_clear_of_stripes,
     find_dots,
+    level_bin,
+    response_at,
     stripe_maps,
 )
+from multislit.stripes.separation import saturation_level_of
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -57,9 +64,12 @@ F32 = NDArray[np.float32]
 SLOPE_MAX = 3.0
 #: A predicted dot is found when an observed dot lies within this many px of its place.
 MATCH_TOL_PX = 1.5
-#: Chance that a dot the rays predict on a lit surface is found in the image, clear of the
-#: stripes and near one (where a dot must outshine the speckle on the stripe).
-P_DETECT = (0.8, 0.55)
+#: Chance that a dot the rays predict on a lit surface is there to be seen (not hidden, its ray
+#: right).
+P_VISIBLE = 0.85
+#: A dot's expected response is taken as this share of the frame's typical one: dots vary in
+#: brightness, and a dimmer one than expected must still count.
+ALPHA_SHARE = 0.6
 #: Tilts of the surface across the stripe tried on either side of 0 (up to atan(SLOPE_MAX)).
 _SLOPE_STEPS = 8
 #: The frame's density of dots weighs in the local one as much as this many px of the place's
@@ -195,23 +205,28 @@ def dot_grid(
 
 @dataclass(frozen=True, eq=False)
 class FrameDots:
-    """The observed dots of one frame as the evidence kernels read them.
+    """The frame's dots as the evidence kernels read them.
+
+    The evidence reads the dots' response (:class:`~multislit.stripes.dots.DotResponse`) where
+    each hypothesis puts a dot: a faint dot counts as far as it stands out of the noise there,
+    and no threshold decides first. The dots found in the image (:func:`find_dots`) measure
+    the chance that a dot lies at a place by chance, and are what the identified dots are
+    paired with (:func:`dot_matches`).
 
     Attributes
     ----------
-    dots : DotCentres, speckle on the stripes left out
+    dots : DotCentres, the dots found, speckle on the stripes left out
         (:func:`~multislit.stripes.dots.dots_clear_of_stripes`)
     near : (M,) bool, the dots closer than ``clearance_px`` to a stripe centre
     distance : (H, W) float32, px, distance to the nearest stripe centre
     clearance_px : px
     p_false : (2, Hb, Wb) float32, :func:`false_match_map`
-    grid : the dots' look-up grid (:func:`dot_grid`)
+    grid : the found dots' look-up grid (:func:`dot_grid`)
     near_zone : (H, W) uint8, 1 near a stripe
-    hit, miss : (2, Hb, Wb) float32, per zone (clear, near) and block, the log-likelihood ratio
-        of a dot predicted there found and missed: ``log(p_det / p_false)``,
-        ``log((1 - p_det) / (1 - p_false))`` (``p_det`` of :data:`P_DETECT`)
-    found : (H, W) uint8, 1 where an observed dot's centre lies within :data:`MATCH_TOL_PX` of
-        the pixel's centre (to the pixel: for the first, quick look at every slit)
+    response : the dots' response of the frame
+    beta : the response of a dot per unit of the stripe's peak beside it (the frame's median
+        over the dots found clear of the stripes): a dot on a surface is as bright, relative
+        to the stripe on it, as on any other
     """
 
     dots: DotCentres
@@ -221,57 +236,12 @@ class FrameDots:
     p_false: F32
     grid: tuple
     near_zone: NDArray[np.uint8]
-    hit: F32
-    miss: F32
-    found: NDArray[np.uint8]
-
-    @classmethod
-    def make(
-        cls,
-        dots: DotCentres,
-        near: NDArray[np.bool_],
-        distance: F32,
-        clearance_px: float,
-        density_radius_px: float,
-    ) -> FrameDots:
-        """The frame's dots with their chance-match map (over squares of half side
-        ``density_radius_px``) and look-up grid."""
-        near_zone = distance < clearance_px
-        pf = false_match_map(dots, near, near_zone, density_radius_px)
-        p_det = np.array(P_DETECT, np.float32)[:, None, None]
-        hit = np.log(p_det / pf)
-        miss = np.log((np.float32(1.0) - p_det) / (np.float32(1.0) - pf))
-        grid = dot_grid(dots, distance.shape)
-        zone = near_zone.view(np.uint8)
-        h, w = distance.shape
-        found = np.zeros((h, w), np.uint8)
-        found[
-            np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1),
-            np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1),
-        ] = 1
-        rad = int(math.floor(MATCH_TOL_PX))
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-        found = cv2.dilate(found, disk)
-        return cls(dots, near, distance, float(clearance_px), pf, grid, zone, hit, miss, found)
+    response: DotResponse
+    beta: float
 
     def kernel_args(self) -> tuple:
-        g_order, g_start, gnx, gny = self.grid
-        return (
-            self.dots.u,
-            self.dots.v,
-            g_order,
-            g_start,
-            gnx,
-            gny,
-            _CELL,
-            self.found,
-            self.near_zone,
-            self.hit,
-            self.miss,
-            MATCH_TOL_PX,
-            SLOPE_MAX,
-            _SLOPE_STEPS,
-        )
+        """(smoothed, reach, edges, offset, sigma, near zone, p_false, P_VISIBLE)."""
+        return (*self.response.kernel_args(), self.near_zone, self.p_false, P_VISIBLE)
 
 
 def _rig_args(rig: RigGeometry) -> tuple:
@@ -293,12 +263,32 @@ def _rig_args(rig: RigGeometry) -> tuple:
     ), (cam, np.ascontiguousarray(R), t, dist, float(rig.depth_range[0]), float(rig.depth_range[1]))
 
 
+def window_stripes(extraction, order: NDArray[np.intp], start: NDArray[np.intp]) -> tuple[F64, F64]:
+    """Each window's stripe as the evidence reads it: its direction (rad from the image's
+    vertical) and its peak (intensity units), the medians over its points
+    ``order[start[w]:start[w+1]]`` of the extraction's ``angle`` and ``peak`` (W,) each."""
+    n = np.diff(start)
+    grp = np.repeat(np.arange(len(n)), n)
+    direction = group_medians(np.asarray(extraction.angle, np.float64)[order], grp, len(n))
+    peak = group_medians(np.asarray(extraction.peak, np.float64)[order], grp, len(n))
+    return np.nan_to_num(direction), np.nan_to_num(peak)
+
+
+def _window_args(direction: F64, peak: F64) -> tuple[F64, F64, F64]:
+    """(sin, cos) of the stripes' directions (NaN: vertical) and their peaks, as the kernels
+    read them."""
+    a = np.nan_to_num(np.asarray(direction, np.float64))
+    return np.sin(a), np.cos(a), np.ascontiguousarray(peak, np.float64)
+
+
 def dot_evidence(
     rig: RigGeometry,
     rays: F64,
     order: NDArray[np.intp],
     win_start: NDArray[np.intp],
     frame: FrameDots,
+    direction: F64,
+    peak: F64,
     hypotheses: NDArray[np.bool_] | None = None,
 ) -> DotEvidence:
     """The dots' evidence for every window of stripe points, every slit and both sides.
@@ -310,6 +300,9 @@ def dot_evidence(
     order : (P,) intp, stripe point indices, window after window
     win_start : (W+1,) intp, window w holds ``order[win_start[w]:win_start[w+1]]``
     frame : the frame's dots (:class:`FrameDots`)
+    direction : (W,) float64, rad, each window's stripe direction from the image's vertical
+    peak : (W,) float64, each window's stripe peak (intensity units): its dots are as bright
+        as :attr:`FrameDots.beta` times it
     hypotheses : (W, N) bool, the slits to score per window; default all
 
     Returns
@@ -336,7 +329,11 @@ def dot_evidence(
             np.ascontiguousarray(hypotheses),
             O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb, float(rig.phi_sign),
             *cam,
+            *_window_args(direction, peak),
+            np.full(rig.dots.num_dots, frame.beta),
             *frame.kernel_args(),
+            SLOPE_MAX,
+            _SLOPE_STEPS,
             _KEEP,
             llr,
             found,
@@ -355,6 +352,8 @@ def gap_evidence(
     b_order: NDArray[np.intp],
     b_start: NDArray[np.intp],
     frame: FrameDots,
+    direction: F64,
+    peak: F64,
     pairs: NDArray[np.bool_] | None = None,
 ) -> GapEvidence:
     """The dots between pieces side by side in the rows, as one surface and apart.
@@ -367,6 +366,8 @@ def gap_evidence(
         (those in the rows it shares with the right piece)
     b_order, b_start : the same for the right piece
     frame : the frame's dots
+    direction : (P,) float64, rad, the stripes' direction at each gap (from the vertical)
+    peak : (P,) float64, the stripes' peak at each gap (intensity units)
     pairs : (P, N) bool, the slits k of the left piece (k + 1 of the right) worth scoring;
         default all
 
@@ -393,7 +394,11 @@ def gap_evidence(
             b_start.astype(np.intp),
             planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb,
             *cam,
+            *_window_args(direction, peak),
+            np.full(rig.dots.num_dots, frame.beta),
             *frame.kernel_args(),
+            SLOPE_MAX,
+            _SLOPE_STEPS,
             np.ascontiguousarray(pairs),
             fixed,
             free_a,
@@ -513,95 +518,60 @@ def _direction(phi, psi, F):
 
 
 @njit(cache=True, inline="always")
-def _weights(u0, v0, w, h, zone_m, hit_w, miss_w):
-    """(usable, log-ratio of a found dot, log-ratio of a missed one) of a dot predicted at
-    (u0, v0): usable inside the image; the ratios read at its place."""
+def _dot_llr(z, alpha, p_vis, p_c):
+    """Log-likelihood ratio of a predicted dot whose place shows the response ``z`` (noise
+    sigmas) where a dot would show ``alpha``: the dot is there with the chance ``p_vis``
+    (against ``p_c``, a dot there by chance), else the place shows noise. Between
+    log(1 - p_vis) (nothing where a bright dot must be) and log(p_vis / p_c) (a bright dot
+    there); near 0 where ``alpha`` is small (a dark surface: its dots say little)."""
+    ll = alpha * z - 0.5 * alpha * alpha
+    if ll > 40.0:
+        return math.log(1.0 - p_vis + p_vis / p_c)
+    lam = math.exp(ll)
+    return math.log(1.0 - p_vis + p_vis * lam / ((1.0 - p_c) + p_c * lam))
+
+
+@njit(cache=True, inline="always")
+def _soft(u0, v0, su, sv, amp, sm, reach, edges, offset, sigma, zone_m, pc, p_vis):
+    """(usable, log-likelihood ratio) of a dot predicted at (u0, v0) px beside a stripe of
+    direction (``su``, ``sv``) on which a dot's response is ``amp`` (intensity units): read
+    from the frame's dots' response there (:func:`~multislit.stripes.dots.response_at`), in
+    noise sigmas of its zone and level. Not usable outside the image or on saturated places."""
+    h, w = zone_m.shape
     if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
-        return False, 0.0, 0.0
+        return False, 0.0
+    r, level = response_at(sm, u0, v0, su, sv, reach)
+    if not np.isfinite(r):
+        return False, 0.0
     iv = int(v0 + 0.5)
     iu = int(u0 + 0.5)
     z = zone_m[iv, iu]
-    return True, hit_w[z, iv >> _SHIFT, iu >> _SHIFT], miss_w[z, iv >> _SHIFT, iu >> _SHIFT]
+    b = level_bin(edges[z], level)
+    s = sigma[z, b]
+    x = _dot_llr((r - offset[z, b]) / s, ALPHA_SHARE * amp / s, p_vis,
+                 pc[z, iv >> _SHIFT, iu >> _SHIFT])  # fmt: skip
+    return True, x
 
 
 @njit(cache=True)
-def _path_slopes(u0, v0, bu, bv, cu, cv, G, tol, ou, ov, g_order, g_start, gnx, gny, cell,
-                 mg, mt):  # fmt: skip
-    """The slopes at which an observed dot lies within ``tol`` px of the path ``p(g) = p0 + b g
-    + c g^2``, g in [-G, G]: each such dot's slope ``mg`` and its tolerance ``mt`` (the slopes
-    within ``mt`` of ``mg`` keep it within about ``tol``). Returns how many were recorded."""
-    um = u0 - bu * G + cu * G * G
-    vm = v0 - bv * G + cv * G * G
-    up = u0 + bu * G + cu * G * G
-    vp = v0 + bv * G + cv * G * G
-    cx0 = max(0, int((min(u0, um, up) - tol) / cell))
-    cx1 = min(gnx - 1, int((max(u0, um, up) + tol) / cell))
-    cy0 = max(0, int((min(v0, vm, vp) - tol) / cell))
-    cy1 = min(gny - 1, int((max(v0, vm, vp) + tol) / cell))
-    speed2 = bu * bu + bv * bv
-    nm = 0
-    for cy in range(cy0, cy1 + 1):
-        for cx in range(cx0, cx1 + 1):
-            cidx = cy * gnx + cx
-            for e in range(g_start[cidx], g_start[cidx + 1]):
-                o = g_order[e]
-                if speed2 > 1e-12:
-                    g = ((ou[o] - u0) * bu + (ov[o] - v0) * bv) / speed2
-                    g = min(G, max(-G, g))
-                    tu = bu + 2.0 * cu * g
-                    tv = bv + 2.0 * cv * g
-                    tt = tu * tu + tv * tv
-                    pu = u0 + bu * g + cu * g * g
-                    pv = v0 + bv * g + cv * g * g
-                    g = min(G, max(-G, g + ((ou[o] - pu) * tu + (ov[o] - pv) * tv) / tt))
-                    pu = u0 + bu * g + cu * g * g
-                    pv = v0 + bv * g + cv * g * g
-                    dd = math.sqrt((ou[o] - pu) ** 2 + (ov[o] - pv) ** 2)
-                    gt = tol / math.sqrt(tt)
-                else:
-                    g = 0.0
-                    dd = math.sqrt((ou[o] - u0) ** 2 + (ov[o] - v0) ** 2)
-                    gt = 1e9
-                if dd <= tol and nm < len(mg):
-                    mg[nm] = g
-                    mt[nm] = gt
-                    nm += 1
-    return nm
-
-
-@njit(cache=True)
-def _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx, gny, cell,
-                 zone_m, hit_w, miss_w, gvals, mg, mt, score, count):  # fmt: skip
-    """Add one predicted dot to the slope grid ``gvals`` (S,): its place at each slope on the
-    path ``p(g)`` (the parabola through (um, vm), (u0, v0), (up, vp) at g = -G, 0, G) is found
-    when an observed dot lies within ``tol`` px; ``score`` (S,) gains the log-ratio of found or
-    missed there (with the chance of a false match read at that place), ``count`` (S,) the
-    found dots. Places outside the image count neither way. ``mg``, ``mt`` are work space."""
-    h, w = zone_m.shape
+def _dot_path(u0, v0, um, vm, up, vp, G, su, sv, amp, sm, reach, edges, offset, sigma, zone_m,
+              pc, p_vis, gvals, score, count):  # fmt: skip
+    """Add one predicted dot to the slope grid ``gvals`` (S,): at each slope its place on the
+    path ``p(g)`` (the parabola through (um, vm), (u0, v0), (up, vp) at g = -G, 0, G) is read
+    by :func:`_soft`; ``score`` (S,) gains its log-likelihood ratio, ``count`` (S,) counts the
+    places that favour a dot. Places outside the image count neither way."""
     bu = (up - um) / (2.0 * G)
     bv = (vp - vm) / (2.0 * G)
     cu = (up + um - 2.0 * u0) / (2.0 * G * G)
     cv = (vp + vm - 2.0 * v0) / (2.0 * G * G)
-    nm = _path_slopes(u0, v0, bu, bv, cu, cv, G, tol, ou, ov, g_order, g_start, gnx, gny,
-                      cell, mg, mt)  # fmt: skip
     for gi in range(len(gvals)):
         g = gvals[gi]
-        pu = u0 + bu * g + cu * g * g
-        pv = v0 + bv * g + cv * g * g
-        if not (pu >= 1.0 and pu <= w - 2.0 and pv >= 1.0 and pv <= h - 2.0):
-            continue
-        iv = int(pv + 0.5)
-        iu = int(pu + 0.5)
-        hit = False
-        for e in range(nm):
-            if abs(mg[e] - g) <= mt[e]:
-                hit = True
-                break
-        if hit:
-            score[gi] += hit_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
-            count[gi] += 1
-        else:
-            score[gi] += miss_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
+        ok, x = _soft(u0 + bu * g + cu * g * g, v0 + bv * g + cv * g * g, su, sv, amp, sm,
+                      reach, edges, offset, sigma, zone_m, pc, p_vis)  # fmt: skip
+        if ok:
+            score[gi] += x
+            if x > 0.0:
+                count[gi] += 1
 
 
 @njit(cache=True)
@@ -618,30 +588,14 @@ def _log_mean_exp(x):
 
 
 @njit(cache=True)
-def _found_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell):
-    """Whether an observed dot lies within ``tol`` px of (u0, v0)."""
-    cx0 = max(0, int((u0 - tol) / cell))
-    cx1 = min(gnx - 1, int((u0 + tol) / cell))
-    cy0 = max(0, int((v0 - tol) / cell))
-    cy1 = min(gny - 1, int((v0 + tol) / cell))
-    for cy in range(cy0, cy1 + 1):
-        for cx in range(cx0, cx1 + 1):
-            cidx = cy * gnx + cx
-            for e in range(g_start[cidx], g_start[cidx + 1]):
-                o = g_order[e]
-                if (ou[o] - u0) ** 2 + (ov[o] - v0) ** 2 <= tol * tol:
-                    return True
-    return False
-
-
-@njit(cache=True)
 def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb, phi_sign,
-                      O, F, dphi, dpsi, d_order, b_start, phi0, bw, cam, R, t, dist, ou, ov,
-                      g_order, g_start, gnx, gny, cell, found_m, zone_m, hit_w, miss_w, tol, G, gvals, mg, mt,
+                      O, F, dphi, dpsi, d_order, b_start, phi0, bw, cam, R, t, dist, su, sv,
+                      amp, beta, sm, reach, edges, offset, sigma, zone_m, pc, p_vis, G, gvals,
                       score, count, nuse):  # fmt: skip
     """The dots of one slit hypothesis of a window (its curve ``ps``, ``ph``, ``rr`` sorted by
-    ``idx``): per side, into ``score`` (2, S) and ``count`` (2, S) over the slopes ``gvals``
-    when ``full``, else at the slope 0 only (column 0); ``nuse`` (2,) the dots in the image."""
+    ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``): per side, into ``score``
+    (2, S) and ``count`` (2, S) over the slopes ``gvals`` when ``full``, else at the slope 0
+    only (column 0); ``nuse`` (2,) the dots in the image."""
     h, w = zone_m.shape
     nb = len(b_start) - 1
     b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
@@ -664,13 +618,14 @@ def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb,
             if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                 continue
             nuse[side] += 1
+            a = beta[j] * amp
             if not full:
-                iv, iu = int(v0 + 0.5), int(u0 + 0.5)
-                if found_m[iv, iu]:
-                    score[side, 0] += hit_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
-                    count[side, 0] += 1
-                else:
-                    score[side, 0] += miss_w[zone_m[iv, iu], iv >> _SHIFT, iu >> _SHIFT]
+                ok, x = _soft(u0, v0, su, sv, a, sm, reach, edges, offset, sigma, zone_m, pc,
+                              p_vis)  # fmt: skip
+                if ok:
+                    score[side, 0] += x
+                    if x > 0.0:
+                        count[side, 0] += 1
                 continue
             rm = _range(rc, phc, dphi[j], -G)
             rp = _range(rc, phc, dphi[j], G)
@@ -678,15 +633,15 @@ def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb,
             up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
             if not (np.isfinite(um) and np.isfinite(up)):
                 um, vm, up, vp = u0, v0, u0, v0
-            _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx, gny,
-                         cell, zone_m, hit_w, miss_w, gvals, mg, mt, score[side], count[side])  # fmt: skip
+            _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, sm, reach, edges, offset, sigma,
+                      zone_m, pc, p_vis, gvals, score[side], count[side])  # fmt: skip
 
 
 @njit(cache=True)
 def _window_kernel(
     C, rays, order, win_start, planes, hyp, O, F, dphi, dpsi, d_order, b_start, phi0, bw,
-    half_band, phi_sign, cam, R, t, dist, zmin, zmax, ou, ov, g_order, g_start, gnx, gny,
-    cell, found_m, zone_m, hit_w, miss_w, tol, G, steps, keep, llr, found, used, slope, kept,
+    half_band, phi_sign, cam, R, t, dist, zmin, zmax, wsu, wsv, wamp, beta, sm, reach, edges,
+    offset, sigma, zone_m, pc, p_vis, G, steps, keep, llr, found, used, slope, kept,
 ):  # fmt: skip
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
     ``used`` and ``slope``: every slit at the slope 0 first, then those within ``keep`` of the
@@ -703,8 +658,6 @@ def _window_kernel(
     ph = np.empty(maxt)
     rr = np.empty(maxt)
     idx = np.empty(maxt, np.int64)
-    mg = np.empty(_MAX_CAND)
-    mt = np.empty(_MAX_CAND)
     score = np.zeros((2, ns))
     count = np.zeros((2, ns), np.int64)
     nuse = np.zeros(2, np.int64)
@@ -739,9 +692,9 @@ def _window_kernel(
                 nuse[:] = 0
                 _score_hypothesis(rnd == 1, ps[idx[0]], ps[idx[nc - 1]], phmin, phmax, ps, ph,
                                   rr, idx, nc, half_band[k], phi_sign, O, F, dphi, dpsi,
-                                  d_order, b_start, phi0, bw, cam, R, t, dist, ou, ov,
-                                  g_order, g_start, gnx, gny, cell, found_m, zone_m, hit_w, miss_w, tol, G,
-                                  gvals, mg, mt, score, count, nuse)  # fmt: skip
+                                  d_order, b_start, phi0, bw, cam, R, t, dist, wsu[wi],
+                                  wsv[wi], wamp[wi], beta, sm, reach, edges, offset, sigma,
+                                  zone_m, pc, p_vis, G, gvals, score, count, nuse)  # fmt: skip
                 for sd in range(2):
                     if rnd == 0:  # the marginal's lower bound: the slope 0 alone
                         llr[wi, k, sd] = score[sd, 0] - math.log(ns)
@@ -772,8 +725,8 @@ def _slope_grid(G, steps):
 @njit(cache=True)
 def _gap_kernel(
     C, rays, a_order, a_start, b_order, b_start_, planes, O, F, dphi, dpsi, d_order, b_start,
-    phi0, bw, half_band, cam, R, t, dist, zmin, zmax, ou, ov, g_order, g_start, gnx, gny, cell,
-    found_m, zone_m, hit_w, miss_w, tol, G, steps, pairs, fixed, free_a, free_b, graze,
+    phi0, bw, half_band, cam, R, t, dist, zmin, zmax, gsu, gsv, gamp, beta, sm, reach, edges,
+    offset, sigma, zone_m, pc, p_vis, G, steps, pairs, fixed, free_a, free_b, graze,
 ):  # fmt: skip
     """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one)."""
     ngap = len(a_start) - 1
@@ -791,8 +744,6 @@ def _gap_kernel(
     phb = np.empty(maxt)
     rrb = np.empty(maxt)
     ib = np.empty(maxt, np.int64)
-    mg = np.empty(_MAX_CAND)
-    mt = np.empty(_MAX_CAND)
     gvals = _slope_grid(G, steps)
     score = np.zeros((2, len(gvals)))
     count = np.zeros((2, len(gvals)), np.int64)
@@ -871,21 +822,22 @@ def _gap_kernel(
                     # the surface between the two stripes: range linear across
                     r = ra + f * (rb - ra)
                     u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
-                    ok, a_hit, a_miss = _weights(u0, v0, w, h, zone_m, hit_w, miss_w)
+                    a = beta[j] * gamp[p]
+                    ok, x = _soft(u0, v0, gsu[p], gsv[p], a, sm, reach, edges, offset, sigma,
+                                  zone_m, pc, p_vis)  # fmt: skip
                     if ok:
-                        hit = _found_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell)
-                        fx += a_hit if hit else a_miss
+                        fx += x
                     # the same dot with a free slope about the nearer stripe
                     side = 0 if f <= 0.5 else 1
-                    pc, rc = (pa, ra) if side == 0 else (pb, rb)
-                    r0 = _range(rc, pc, dphi[j], 0.0)
+                    pc_, rc = (pa, ra) if side == 0 else (pb, rb)
+                    r0 = _range(rc, pc_, dphi[j], 0.0)
                     u0, v0 = _project(
                         O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist
                     )
                     if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                         continue
-                    rm = _range(rc, pc, dphi[j], -G)
-                    rp = _range(rc, pc, dphi[j], G)
+                    rm = _range(rc, pc_, dphi[j], -G)
+                    rp = _range(rc, pc_, dphi[j], G)
                     um, vm = _project(
                         O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
                     )
@@ -894,26 +846,67 @@ def _gap_kernel(
                     )
                     if not (np.isfinite(um) and np.isfinite(up)):
                         um, vm, up, vp = u0, v0, u0, v0
-                    _dot_on_grid(u0, v0, um, vm, up, vp, G, tol, ou, ov, g_order, g_start, gnx,
-                                 gny, cell, zone_m, hit_w, miss_w, gvals, mg, mt,
-                                 score[side], count[side])  # fmt: skip
+                    _dot_path(u0, v0, um, vm, up, vp, G, gsu[p], gsv[p], a, sm, reach, edges,
+                              offset, sigma, zone_m, pc, p_vis, gvals, score[side],
+                              count[side])  # fmt: skip
             fixed[p, k] = fx
             free_a[p, k] = _log_mean_exp(score[0])[0]
             free_b[p, k] = _log_mean_exp(score[1])[0]
 
 
 def frame_dots(extraction, spacing_px: float) -> FrameDots:
-    """The observed dots of an extraction (:class:`~multislit.stripes.SlitExtraction`): found
-    in its dot image (:func:`~multislit.stripes.dots.find_dots`), speckle on the stripes left
-    out, with the chance of a false match measured over squares of about ``spacing_px``
-    (the slits' spacing, px) around each place."""
+    """The frame's dots of an extraction (:class:`~multislit.stripes.SlitExtraction`): its
+    dots' response (:func:`~multislit.stripes.dots.dot_response`, its noise measured up to half
+    the slits' spacing ``spacing_px`` across the stripes), the dots found in its dot image
+    (:func:`~multislit.stripes.dots.find_dots`, speckle on the stripes left out) with the
+    chance of a false match measured over squares of about ``spacing_px`` around each place,
+    and the dots' brightness relative to the stripes beside them."""
     ex = extraction
     h, w = ex.dots.shape
     clearance = STRIPE_CLEARANCE * ex.stripe_width_px
     dist, peak = stripe_maps(ex.u, ex.v, ex.peak, (h, w), clearance)
+    near_zone = dist < clearance
     found = find_dots(ex.dots, ex.noise_sigma, ex.dot_size_px)
     dots, near = dots_clear_of_stripes(found, dist, peak, clearance, MIN_DOT_RATIO)
-    return FrameDots.make(dots, near, dist, clearance, max(8.0, float(spacing_px)))
+    response = dot_response(
+        ex.plane,
+        ex.dot_size_px,
+        ex.u,
+        ex.v,
+        ex.angle,
+        near_zone,
+        0.5 * max(float(spacing_px), 2.0 * clearance),
+        saturation_level_of(ex.plane),
+    )
+    pf = false_match_map(dots, near, near_zone, max(8.0, float(spacing_px)))
+    return FrameDots(
+        dots,
+        near,
+        dist,
+        float(clearance),
+        pf,
+        dot_grid(dots, (h, w)),
+        near_zone.view(np.uint8),
+        response,
+        _dot_brightness(ex, dots.subset(~near), response, spacing_px),
+    )
+
+
+def _dot_brightness(ex, dots: DotCentres, response: DotResponse, spacing_px: float) -> float:
+    """The dots' response per unit of the peak of the stripe nearest them: the median over
+    the dots found clear of the stripes within a slit spacing of a stripe centre (1 where
+    there are none)."""
+    if len(dots) == 0 or len(ex.u) == 0:
+        return 1.0
+    tree = cKDTree(np.stack([ex.u, ex.v], axis=1))
+    d, i = tree.query(dots.uv, distance_upper_bound=max(float(spacing_px), 1.0))
+    ok = np.isfinite(d)
+    if not ok.any():
+        return 1.0
+    r, _ = response.at(dots.u[ok], dots.v[ok], np.nan_to_num(ex.angle[i[ok]]))
+    ratio = r / np.maximum(ex.peak[i[ok]], 1e-9)
+    ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
+    return float(np.median(ratio)) if ratio.size else 1.0
 
 
 @njit(cache=True)

@@ -27,7 +27,13 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit.identify.evidence import dot_evidence, dot_matches, frame_dots, gap_evidence
+from multislit.identify.evidence import (
+    dot_evidence,
+    dot_matches,
+    frame_dots,
+    gap_evidence,
+    window_stripes,
+)
 from multislit.identify.graph import confidence_margin, label_pieces
 from multislit.identify.options import IdentifyOptions
 from multislit.identify.pieces import (
@@ -139,7 +145,8 @@ def identify_geometry(
     segment = split_at_brightness_steps(ex.segment.astype(np.int64), along, ex.peak)
     segment = split_at_kinks(segment, across, along, _KINK_ROWS, _KINK_PX)
     win = windows(segment, along, _WINDOW_ROWS)
-    ev = dot_evidence(rig, rays, win.order, win.start, frame)
+    w_dir, w_peak = window_stripes(ex, win.order, win.start)
+    ev = dot_evidence(rig, rays, win.order, win.start, frame, w_dir, w_peak)
     scores = _calibrated(ev.llr.sum(axis=2).astype(np.float64))
     nw = win.num_windows
     window = Windows(win.order, win.start, win.segment, np.arange(nw)).piece_of_points(k)
@@ -149,7 +156,18 @@ def identify_geometry(
     # the pairs (k, k + 1) worth the dots between: both among their windows' best
     pairs = np.zeros((gp.num_gaps, rig.num_slits), bool)
     pairs[:, :-1] = ev.kept[gp.a, :-1] & ev.kept[gp.b, 1:]
-    ge = gap_evidence(rig, rays, gp.a_order, gp.a_start, gp.b_order, gp.b_start, frame, pairs)
+    ge = gap_evidence(
+        rig,
+        rays,
+        gp.a_order,
+        gp.a_start,
+        gp.b_order,
+        gp.b_start,
+        frame,
+        0.5 * (w_dir[gp.a] + w_dir[gp.b]),
+        np.sqrt(w_peak[gp.a] * w_peak[gp.b]),
+        pairs,
+    )
     ca, cb, bonus, change = _continuations(ex, segment, win)
     # the dots between them count where scored; elsewhere the pieces' own evidence stands
     between = np.where(np.isfinite(ge.fixed), ge.bonus, 0.0).astype(np.float64)

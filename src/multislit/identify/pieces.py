@@ -173,7 +173,7 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
     # per gap, the median ratio of its width to the widths beside it (NaN: none beside)
     with np.errstate(divide="ignore"):  # a zero width (two pieces crossing): no ratio
         log_ratio = np.log(ratio)
-    med = _group_medians(log_ratio, np.repeat(np.arange(len(n)), n), len(n))
+    med = group_medians(log_ratio, np.repeat(np.arange(len(n)), n), len(n))
     return Gaps(
         piece[a[bounds[:-1][ok]]],
         piece[b[bounds[:-1][ok]]],
@@ -217,7 +217,7 @@ def gaps_across(
     # the piece above comes first; where the stripe leans right going down (its left side
     # turned downwards), the lower slit's side is below: the pair turns round
     n = np.diff(cols.a_start)
-    lean = _group_medians(angle[cols.a_order], np.repeat(np.arange(len(n)), n), len(n))
+    lean = group_medians(angle[cols.a_order], np.repeat(np.arange(len(n)), n), len(n))
     turn = lean > 0
     a = np.where(turn, cols.b, cols.a)
     b = np.where(turn, cols.a, cols.b)
@@ -236,7 +236,7 @@ def gaps_across(
     )
 
 
-def _group_medians(x: F64, group: I64, num_groups: int) -> F64:
+def group_medians(x: F64, group: I64, num_groups: int) -> F64:
     """(num_groups,) the median of the finite ``x`` of each group (NaN: none)."""
     f = np.isfinite(x)
     x, group = x[f], group[f]

@@ -17,12 +17,14 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.sizes import FWHM_PER_SIGMA
 from multislit.stripes.validation import SlitExtractionError
 
 F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
 
 #: Default detection threshold of :func:`find_dots`, in noise sigmas of the smoothed dot image.
 DEFAULT_DOT_K_SIGMA = 4.0
@@ -187,3 +189,205 @@ def dots_clear_of_stripes(
     near = distance[r, c] < clearance_px
     keep = ~near | (dots.peak >= min_ratio * stripe_peak[r, c])
     return dots.subset(keep), near[keep]
+
+
+# --------------------------------------------------------------------------- the dots' response
+#: The dots' response compares the image, smoothed by a dot's Gaussian, at a place with its mean
+#: this many smoothing sigmas (plus one px) before and after the place along the stripes'
+#: direction: a stripe, a smooth background and their gradients across the stripe cancel, a dot
+#: stands out.
+RESPONSE_REACH = 2.5
+#: Level bins of the response's noise table, per zone (clear of the stripes, near one) ...
+_NOISE_BINS = 12
+#: ... measured at this many places beside the stripes (at most).
+_NOISE_SAMPLES = 40000
+#: A bin's noise is never taken as less than this share of its zone's median.
+_NOISE_FLOOR = 0.25
+
+
+@njit(cache=True, inline="always")
+def _bilinear(img, u, v):
+    """``img`` (H, W) at (u, v) px, bilinear; NaN outside."""
+    h, w = img.shape
+    if not (u >= 0.0 and u <= w - 1.0 and v >= 0.0 and v <= h - 1.0):
+        return np.nan
+    c = min(int(u), w - 2)
+    r = min(int(v), h - 2)
+    fu = u - c
+    fv = v - r
+    top = img[r, c] + fu * (img[r, c + 1] - img[r, c])
+    bot = img[r + 1, c] + fu * (img[r + 1, c + 1] - img[r + 1, c])
+    return top + fv * (bot - top)
+
+
+@njit(cache=True, inline="always")
+def response_at(smoothed, u, v, su, sv, reach):
+    """The dots' response at (u, v) px and the level it stands on: ``smoothed`` there less
+    its mean at ``reach`` px before and after along the stripes' direction (``su``, ``sv``: the
+    unit direction in the image), and that mean. NaN where a sample leaves the image or lies
+    on a saturated place (NaN in ``smoothed``)."""
+    a = _bilinear(smoothed, u, v)
+    b = _bilinear(smoothed, u - reach * su, v - reach * sv)
+    c = _bilinear(smoothed, u + reach * su, v + reach * sv)
+    level = 0.5 * (b + c)
+    return a - level, level
+
+
+@njit(cache=True, inline="always")
+def level_bin(edges, x):
+    """The bin of ``x`` among the ``edges`` (B + 1,) ascending: 0 .. B - 1 (clipped)."""
+    lo = 0
+    hi = len(edges) - 2
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if x >= edges[mid]:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@njit(cache=True)
+def _responses(smoothed, u, v, su, sv, reach, out, level):
+    for i in range(len(u)):
+        out[i], level[i] = response_at(smoothed, u[i], v[i], su[i], sv[i], reach)
+
+
+@dataclass(frozen=True, eq=False)
+class DotResponse:
+    """How strongly each place of a frame looks like a dot, in noise sigmas.
+
+    The image is smoothed by a Gaussian of the dot's size (the matched filter of a Gaussian
+    spot); the response at a place is the smoothed image there less its mean at
+    ``reach_px`` before and after the place along the stripes' direction. A stripe and a smooth
+    background cancel; a dot stands out, however faint, and is not thresholded away: the
+    identification reads the response where its hypotheses put dots. Its noise is measured on
+    the frame beside the stripes, per zone (clear of the stripes, near one: speckle on a stripe
+    is noise there) and per level of the smoothed image (shot noise grows with it).
+
+    Attributes
+    ----------
+    smoothed : (H, W) float32, the image plane smoothed by the dot's Gaussian (intensity
+        units); NaN near saturated pixels (a dot cannot be seen there)
+    reach_px : px, how far along the stripe the response compares
+    edges : (2, B + 1) float32, per zone, the level bins of ``smoothed``
+    offset, sigma : (2, B) float32, per zone and level bin, the median and the robust sigma
+        of the response at places beside the stripes (intensity units)
+    """
+
+    smoothed: F32
+    reach_px: float
+    edges: F32
+    offset: F32
+    sigma: F32
+
+    def kernel_args(self) -> tuple:
+        """What the compiled kernels read: (smoothed, reach, edges, offset, sigma)."""
+        return self.smoothed, float(self.reach_px), self.edges, self.offset, self.sigma
+
+    def at(self, u: ArrayLike, v: ArrayLike, angle: ArrayLike) -> tuple[F64, F64]:
+        """The response at (u, v) px along the stripe direction ``angle`` (rad from the
+        image's vertical, as :attr:`~multislit.stripes.SlitExtraction.angle`), and the level it
+        stands on (:func:`response_at`): (M,) float64 each, intensity units, NaN outside the
+        image or near saturated pixels."""
+        u = np.ascontiguousarray(u, np.float64).ravel()
+        v = np.ascontiguousarray(v, np.float64).ravel()
+        a = np.broadcast_to(np.asarray(angle, np.float64), u.shape)
+        out = np.empty(u.size)
+        level = np.empty(u.size)
+        _responses(self.smoothed, u, v, np.sin(a), np.cos(a), self.reach_px, out, level)
+        return out, level
+
+    def z(self, u: ArrayLike, v: ArrayLike, angle: ArrayLike, near: ArrayLike) -> F64:
+        """(M,) float64: the response at (u, v) in noise sigmas of its zone (``near`` (M,)
+        bool: near a stripe) and level."""
+        r, level = self.at(u, v, angle)
+        u = np.asarray(u, np.float64).ravel()
+        zone = np.broadcast_to(np.asarray(near, bool), u.shape).astype(np.intp)
+        out = np.full(u.size, np.nan)
+        for z in (0, 1):
+            m = (zone == z) & np.isfinite(level)
+            b = np.clip(np.searchsorted(self.edges[z], level[m], side="right") - 1, 0, None)
+            b = np.minimum(b, self.sigma.shape[1] - 1)
+            out[m] = (r[m] - self.offset[z, b]) / self.sigma[z, b]
+        return out
+
+
+def dot_response(
+    plane: ArrayLike,
+    dot_size_px: float,
+    u: F64,
+    v: F64,
+    angle: F64,
+    near_zone: NDArray[np.bool_],
+    spread_px: float,
+    saturation_level: float | None = None,
+) -> DotResponse:
+    """The dots' response of a frame (:class:`DotResponse`), its noise measured beside the
+    stripes.
+
+    Parameters
+    ----------
+    plane : (H, W) the image plane (e.g. :attr:`~multislit.stripes.SlitExtraction.plane`)
+    dot_size_px : px, the dots' FWHM
+    u, v : (K,) float64, px, stripe centres
+    angle : (K,) float64, rad, the stripes' direction at the centres (NaN: taken as vertical)
+    near_zone : (H, W) bool, the places near a stripe
+    spread_px : px, the noise is measured at places up to this far across the stripes from
+        their centres (about half the slits' spacing)
+    saturation_level : the plane's saturation level; None: none (float data) ...
+    """
+    img = np.asarray(plane)
+    h, w = img.shape
+    sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
+    sm = cv2.GaussianBlur(img.astype(np.float32, copy=False), (0, 0), sigma)
+    reach = RESPONSE_REACH * sigma + 1.0
+    if saturation_level is not None:
+        clipped = (img >= saturation_level).astype(np.uint8)
+        if clipped.any():
+            rad = int(math.ceil(2.0 * sigma))
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+            sm[cv2.dilate(clipped, k) > 0] = np.nan
+    # the noise, beside the stripes: places across each (of a sample of) stripe centres
+    rng = np.random.default_rng(0)
+    n = len(u)
+    pick = rng.choice(n, size=min(n, _NOISE_SAMPLES), replace=False) if n else np.zeros(0, int)
+    a = np.where(np.isfinite(angle[pick]), angle[pick], 0.0)
+    su, sv = np.sin(a), np.cos(a)
+    off = rng.uniform(-spread_px, spread_px, len(pick))
+    pu, pv = u[pick] + off * sv, v[pick] - off * su
+    resp = np.empty(len(pick))
+    level = np.empty(len(pick))
+    _responses(sm, pu, pv, su, sv, reach, resp, level)
+    r = np.clip(np.rint(pv).astype(np.intp), 0, h - 1)
+    c = np.clip(np.rint(pu).astype(np.intp), 0, w - 1)
+    zone = np.asarray(near_zone, bool)[r, c]
+    ok = np.isfinite(resp) & np.isfinite(level)
+    edges = np.zeros((2, _NOISE_BINS + 1), np.float32)
+    offset = np.zeros((2, _NOISE_BINS), np.float32)
+    sig = np.ones((2, _NOISE_BINS), np.float32)
+    fallback = smoothed_noise(1.0, sigma)
+    for z in (0, 1):
+        m = ok & (zone == bool(z))
+        x, lv = resp[m], level[m]
+        if x.size < 4 * _NOISE_BINS:  # too few places: the other zone's, or unit noise
+            m = ok
+            x, lv = resp[m], level[m]
+        if x.size < 4 * _NOISE_BINS:
+            edges[z] = np.linspace(0.0, 1.0, _NOISE_BINS + 1)
+            sig[z] = fallback
+            continue
+        e = np.quantile(lv, np.linspace(0.0, 1.0, _NOISE_BINS + 1))
+        e[0], e[-1] = -np.inf, np.inf
+        b = np.clip(np.searchsorted(e, lv, side="right") - 1, 0, _NOISE_BINS - 1)
+        for k in range(_NOISE_BINS):
+            xb = x[b == k]
+            if xb.size == 0:
+                continue
+            med = np.median(xb)
+            offset[z, k] = med
+            sig[z, k] = 1.4826 * np.median(np.abs(xb - med))
+        floor = _NOISE_FLOOR * max(float(np.median(sig[z])), 1e-12)
+        sig[z] = np.maximum(sig[z], floor)
+        edges[z] = np.nan_to_num(e, posinf=np.finfo(np.float32).max, neginf=-np.finfo(np.float32).max)
+    return DotResponse(sm, float(reach), edges, offset, sig)

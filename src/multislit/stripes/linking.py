@@ -73,6 +73,9 @@ class SlitExtraction(Summarised):
         unlinked points
     by_column : (K,) bool, the point was found along its column (a stripe leaning more than
         about 45 degrees from the vertical)
+    plane : (H, W) the image plane the extraction ran on (a colour image's laser plane), as
+        given (uint8, uint16 or float): where the dots' response is read
+        (:func:`~multislit.stripes.dots.dot_response`)
     """
 
     u: F64
@@ -86,6 +89,7 @@ class SlitExtraction(Summarised):
     dot_size_px: float
     angle: F64
     by_column: NDArray[np.bool_]
+    plane: NDArray
 
     @property
     def num_segments(self) -> int:
@@ -103,8 +107,9 @@ class SlitExtraction(Summarised):
         )
 
 
-def _empty_extraction(shape: tuple[int, int], noise: float, sw: float, ds: float) -> SlitExtraction:
+def _empty_extraction(img: NDArray, noise: float, sw: float, ds: float) -> SlitExtraction:
     e = np.empty(0)
+    shape = img.shape
     return SlitExtraction(
         u=e,
         v=e.copy(),
@@ -117,6 +122,7 @@ def _empty_extraction(shape: tuple[int, int], noise: float, sw: float, ds: float
         dot_size_px=ds,
         angle=e.copy(),
         by_column=np.zeros(0, bool),
+        plane=img,
     )
 
 
@@ -220,7 +226,7 @@ def extract_slits(
             est = None
         if est is None:  # nothing stripe-like: no slits
             return _empty_extraction(
-                img.shape, estimate_noise(img), math.nan, ds if ds is not None else math.nan
+                img, estimate_noise(img), math.nan, ds if ds is not None else math.nan
             )
         sw = est
     bg = None
@@ -270,6 +276,7 @@ def extract_slits(
         dot_size_px=ds,
         angle=merged.angle,
         by_column=merged.by_column,
+        plane=img,
     )
 
 
