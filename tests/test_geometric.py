@@ -14,7 +14,7 @@ from multislit.identify import IdentifyOptions, identify
 from multislit.identify.evidence import dot_evidence, frame_dots, window_stripes
 from multislit.identify.frame import synthetic_rig
 from multislit.identify.graph import label_pieces
-from multislit.identify.pieces import group_medians, gaps, gaps_across, windows
+from multislit.identify.pieces import gaps, gaps_across, group_medians, windows
 from multislit.identify.result import SOURCES
 from multislit.reconstruct import ScanOptions, rig_of
 from multislit.sim.evaluate import identification_metrics
