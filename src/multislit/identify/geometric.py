@@ -86,6 +86,9 @@ _MIN_SUPPORT = 8.0
 #: The windows' slits of the lowest evidence (from the rank on) measure the frame's evidence
 #: under wrong slits, which is taken out of every window's so that chance does not add up.
 _NULL_RANK = 4
+#: Across a cut of a linked segment (a brightness step or a kink), the window after it gains
+#: this for the slit of the window before it.
+_JUNCTION = 5.0
 #: A piece that continues another below it (within these rows and px) gains this for one slit.
 _CONTINUATION = 1.0
 _CONTINUATION_ROWS = 12
@@ -168,7 +171,7 @@ def identify_geometry(
         np.sqrt(w_peak[gp.a] * w_peak[gp.b]),
         pairs,
     )
-    ca, cb, bonus, change = _continuations(ex, segment, win)
+    ca, cb, bonus, change, vouch = _continuations(ex, ex.segment.astype(np.int64), segment, win)
     # the dots between them count where scored; elsewhere the pieces' own evidence stands
     between = np.where(np.isfinite(ge.fixed), ge.bonus, 0.0).astype(np.float64)
     # a gap much wider or narrower than those beside it is a step between two surfaces more
@@ -190,6 +193,7 @@ def identify_geometry(
         gap_pair=win.segment[gp.a] * (int(win.segment.max()) + 1) + win.segment[gp.b],
         repeat_penalty=_REPEAT_PENALTY,
         split_penalty=_SPLIT,
+        cont_ties=vouch,
     )
     accepted = (
         (lab.slit >= 0) & (lab.confidence >= options.confidence) & (lab.support >= _MIN_SUPPORT)
@@ -277,35 +281,51 @@ def _near_changes(along: F64, win: Windows, label: I64) -> NDArray[np.bool_]:
     return out
 
 
-def _continuations(ex: SlitExtraction, segment: I64, win: Windows) -> tuple[I64, I64, F64, F64]:
-    """The windows that continue one another, and the bonus of one slit for each: the next
-    window of a segment (:data:`_CHAIN`), and the first window of a segment that continues
-    another below it, as bright (:data:`_CONTINUATION`)."""
+def _continuations(
+    ex: SlitExtraction, linked: I64, segment: I64, win: Windows
+) -> tuple[I64, I64, F64, F64, NDArray[np.bool_]]:
+    """The windows that continue one another, the bonus of one slit and the cost of two for
+    each, and whether they vouch for each other: the next window of a segment
+    (:data:`_CHAIN`, :data:`_CHAIN_CHANGE`; they vouch); across a cut of a linked segment
+    (``linked``, the extraction's segments; ``segment``, them cut at brightness steps and
+    kinks), the first window after the cut (:data:`_JUNCTION`: the cut may be where two slits'
+    stripes meet, or a bend or a shading step of one; they do not vouch: a slit must not rest
+    on continuity across a cut alone); and the first window of a segment that continues another
+    below it, as bright (:data:`_CONTINUATION`; they vouch)."""
     nw = win.num_windows
     same = np.flatnonzero(win.segment[1:] == win.segment[:-1])
-    sa, sb = continuations(ex.u, ex.v, segment, _CONTINUATION_ROWS, _CONTINUATION_PX)
-    if len(sa):
-        # the (geometric) mean brightness of the windows that meet: a step is another surface
-        logp = np.log(np.maximum(ex.peak[win.order], 1e-6))
-        wpeak = np.exp(np.add.reduceat(logp, win.start[:-1]) / np.diff(win.start))
-        nseg0 = int(win.segment.max()) + 1
-        f0 = np.full(nseg0, -1, np.int64)
-        l0 = np.full(nseg0, -1, np.int64)
-        f0[win.segment[::-1]] = np.arange(nw)[::-1]
-        l0[win.segment] = np.arange(nw)
-        ratio = wpeak[l0[sa]] / np.maximum(wpeak[f0[sb]], 1e-6)
-        keep = (ratio < _STEP_RATIO) & (ratio > 1.0 / _STEP_RATIO)
-        sa, sb = sa[keep], sb[keep]
     nseg = int(win.segment.max()) + 1 if nw else 0
     first = np.full(nseg, -1, np.int64)
     last = np.full(nseg, -1, np.int64)
     first[win.segment[::-1]] = np.arange(nw)[::-1]
     last[win.segment] = np.arange(nw)
-    a = np.r_[same, last[sa]].astype(np.int64)
-    b = np.r_[same + 1, first[sb]].astype(np.int64)
-    bonus = np.r_[np.full(len(same), _CHAIN), np.full(len(sa), _CONTINUATION)]
-    change = np.r_[np.full(len(same), _CHAIN_CHANGE), np.zeros(len(sa))]
-    return a, b, bonus, change
+    # the pieces of one linked segment, in their order along it
+    along = np.where(ex.by_column, ex.u, ex.v)
+    has = first >= 0
+    head = win.order[win.start[first[has]]]
+    pieces = np.flatnonzero(has)
+    o = np.lexsort((along[head], linked[head]))
+    pieces, head = pieces[o], head[o]
+    nxt = np.flatnonzero(linked[head[1:]] == linked[head[:-1]])
+    ja, jb = last[pieces[nxt]], first[pieces[nxt + 1]]
+    sa, sb = continuations(ex.u, ex.v, segment, _CONTINUATION_ROWS, _CONTINUATION_PX)
+    if len(sa):
+        # the (geometric) mean brightness of the windows that meet: a step is another surface
+        logp = np.log(np.maximum(ex.peak[win.order], 1e-6))
+        wpeak = np.exp(np.add.reduceat(logp, win.start[:-1]) / np.diff(win.start))
+        ratio = wpeak[last[sa]] / np.maximum(wpeak[first[sb]], 1e-6)
+        keep = (ratio < _STEP_RATIO) & (ratio > 1.0 / _STEP_RATIO)
+        # a cut's pieces are linked as a junction already
+        keep &= linked[win.order[win.start[last[sa]]]] != linked[win.order[win.start[first[sb]]]]
+        sa, sb = sa[keep], sb[keep]
+    a = np.r_[same, ja, last[sa]].astype(np.int64)
+    b = np.r_[same + 1, jb, first[sb]].astype(np.int64)
+    bonus = np.r_[
+        np.full(len(same), _CHAIN), np.full(len(ja), _JUNCTION), np.full(len(sa), _CONTINUATION)
+    ]
+    change = np.r_[np.full(len(same), _CHAIN_CHANGE), np.zeros(len(ja)), np.zeros(len(sa))]
+    vouch = np.r_[np.ones(len(same), bool), np.zeros(len(ja), bool), np.ones(len(sa), bool)]
+    return a, b, bonus, change, vouch
 
 
 def _piece_labels(

@@ -12,7 +12,9 @@ Every piece gets the slit of the labelling that maximises
   piece alone (:attr:`~multislit.identify.evidence.GapEvidence.bonus`); when both carry one
   slit, a penalty (a slit lights a row once);
 - per continuation (a piece that continues another: the next window of a segment, or a
-  segment that continues another below it): a bonus for one slit.
+  segment that continues another below it): a bonus for one slit. Some continuations do not
+  vouch (across a place where two slits' stripes may meet): a piece whose slit rests on
+  them alone is left out.
 
 The labelling is found by loopy belief propagation (max-product, damped), which gives every
 piece its belief per label; the confidence of a piece's label is its belief's share
@@ -147,7 +149,8 @@ def _damped(old, new, damping):
 
 @njit(cache=True)
 def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, sweeps, damping):
-    """Loopy max-product belief propagation; the beliefs (S, L)."""
+    """Loopy max-product belief propagation; the beliefs (S, L) and the messages along each
+    edge (gaps, then continuations) to its second piece and to its first (E, L) each."""
     nl = unary.shape[1]
     ng = len(ga)
     ne = ng + len(ca)
@@ -176,7 +179,7 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, swee
         if moved < _SETTLED:
             break
     _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
-    return belief
+    return belief, fwd, bwd
 
 
 def label_pieces(
@@ -195,6 +198,7 @@ def label_pieces(
     repeat_penalty: float,
     split_penalty: float,
     gap_pair: I64 | None = None,
+    cont_ties: NDArray[np.bool_] | None = None,
 ) -> Labelling:
     """The labelling of the frame's pieces (see the module's docstring).
 
@@ -218,6 +222,11 @@ def label_pieces(
         side by side: the gaps of one pair share its coupling by their rows, in full for
         :data:`_COUPLING_ROWS` shared rows in all (the dots between them, ``gap_bonus``, count
         gap by gap). None: each gap couples on its own.
+    cont_ties : (C,) bool, the continuations whose pieces, when they carry one slit, vouch
+        for each other: their own evidence adds up in ``support``, and a piece's slit may rest
+        on them (default all). The frame is labelled a second time without the continuations
+        that do not vouch; a piece whose best slit differs there rests on them alone, and its
+        confidence is 0.
     repeat_penalty : log-likelihood lost by a gap whose pieces carry one slit
     split_penalty : log-likelihood lost by a gap whose pieces carry two slits that are not
         neighbours of one surface (a step in depth)
@@ -237,7 +246,7 @@ def label_pieces(
         share = rows / np.maximum(np.bincount(pair, rows)[pair], _COUPLING_ROWS)
     cw = np.broadcast_to(np.asarray(coupling, np.float64), w.shape) * share
     theta = np.where(cont, cw[:, None] + gap_bonus, np.nan)
-    belief = _propagate(
+    belief, fwd, bwd = _propagate(
         np.ascontiguousarray(u, np.float64),
         np.asarray(gap_a, np.int64),
         np.asarray(gap_b, np.int64),
@@ -260,9 +269,30 @@ def label_pieces(
     tied_gap = (best[gb] == best[ga] + 1) & cont[np.arange(len(ga)), np.minimum(best[ga], n - 1)]
     ca, cb = np.asarray(cont_a, np.int64), np.asarray(cont_b, np.int64)
     tied_cont = best[ca] == best[cb]
+    if cont_ties is not None:
+        tied_cont &= np.asarray(cont_ties, bool)
     group = _groups(s, np.r_[ga[tied_gap], ca[tied_cont]], np.r_[gb[tied_gap], cb[tied_cont]])
     own = u[np.arange(s), best]
     support = np.bincount(group, weights=own, minlength=s)[group]
+    if cont_ties is not None and not np.all(cont_ties):
+        # the labelling without the continuations that do not vouch: a slit that differs there
+        # rests on them alone
+        keep = np.asarray(cont_ties, bool)
+        alone, _, _ = _propagate(
+            np.ascontiguousarray(u, np.float64),
+            np.asarray(gap_a, np.int64),
+            np.asarray(gap_b, np.int64),
+            np.ascontiguousarray(theta, np.float64),
+            repeat_penalty * w,
+            split_penalty * w,
+            np.asarray(cont_a, np.int64)[keep],
+            np.asarray(cont_b, np.int64)[keep],
+            np.asarray(cont_bonus, np.float64)[keep],
+            np.asarray(cont_change, np.float64)[keep],
+            _SWEEPS,
+            _DAMPING,
+        )
+        conf = np.where(np.argmax(alone, axis=1) == best, conf, 0.0)
     ruled_out = ~np.isfinite(unary[np.arange(s), best])
     slit = np.where(ruled_out, -1, best)
     return Labelling(slit.astype(np.int64), conf, belief, support)

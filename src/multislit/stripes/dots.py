@@ -389,5 +389,7 @@ def dot_response(
             sig[z, k] = 1.4826 * np.median(np.abs(xb - med))
         floor = _NOISE_FLOOR * max(float(np.median(sig[z])), 1e-12)
         sig[z] = np.maximum(sig[z], floor)
-        edges[z] = np.nan_to_num(e, posinf=np.finfo(np.float32).max, neginf=-np.finfo(np.float32).max)
+        edges[z] = np.nan_to_num(
+            e, posinf=np.finfo(np.float32).max, neginf=-np.finfo(np.float32).max
+        )
     return DotResponse(sm, float(reach), edges, offset, sig)
