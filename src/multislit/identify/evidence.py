@@ -108,6 +108,9 @@ class DotEvidence:
     slope : (W, N, 2) float32, the best slope across the stripe
     kept : (W, N) bool, the slits scored with the slope marginalised (those not far below
         the window's best at the slope 0); the others' scores are a lower bound
+    span : (W, N, 3) float32, where window w lies under slit k, seen from the dot source: its
+        least and largest angle along the slits (rad) and its mean range (mm); NaN where slit
+        k puts it outside the measuring volume
     """
 
     llr: F32
@@ -115,6 +118,7 @@ class DotEvidence:
     usable: NDArray[np.int16]
     slope: F32
     kept: NDArray[np.bool_]
+    span: F32
 
 
 @dataclass(frozen=True, eq=False)
@@ -318,6 +322,7 @@ def dot_evidence(
     used = np.zeros((nw, n, 2), np.int16)
     slope = np.zeros((nw, n, 2), np.float32)
     kept = np.zeros((nw, n), bool)
+    span = np.full((nw, n, 3), np.nan, np.float32)
     if nw:
         (planes, O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb), cam = _rig_args(rig)
         _window_kernel(
@@ -340,8 +345,9 @@ def dot_evidence(
             used,
             slope,
             kept,
+            span,
         )  # fmt: skip
-    return DotEvidence(llr, found, used, slope, kept)
+    return DotEvidence(llr, found, used, slope, kept, span)
 
 
 def gap_evidence(
@@ -641,10 +647,11 @@ def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb,
 def _window_kernel(
     C, rays, order, win_start, planes, hyp, O, F, dphi, dpsi, d_order, b_start, phi0, bw,
     half_band, phi_sign, cam, R, t, dist, zmin, zmax, wsu, wsv, wamp, beta, sm, reach, edges,
-    offset, sigma, zone_m, pc, p_vis, G, steps, keep, llr, found, used, slope, kept,
+    offset, sigma, zone_m, pc, p_vis, G, steps, keep, llr, found, used, slope, kept, span,
 ):  # fmt: skip
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
-    ``used`` and ``slope``: every slit at the slope 0 first, then those within ``keep`` of the
+    ``used`` and ``slope`` and per (window, slit) into ``span``: every slit at the slope 0
+    first, then those within ``keep`` of the
     window's best with the slope marginalised (the others keep the marginal's lower bound:
     their score at the slope 0 as if all other slopes found nothing)."""
     nw = len(win_start) - 1
@@ -687,6 +694,13 @@ def _window_kernel(
                 for i in range(nc):
                     phmin = min(phmin, ph[i])
                     phmax = max(phmax, ph[i])
+                if rnd == 0:
+                    span[wi, k, 0] = ps[idx[0]]
+                    span[wi, k, 1] = ps[idx[nc - 1]]
+                    rsum = 0.0
+                    for i in range(nc):
+                        rsum += rr[i]
+                    span[wi, k, 2] = rsum / nc
                 score[:] = 0.0
                 count[:] = 0
                 nuse[:] = 0

@@ -47,6 +47,7 @@ from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import SOURCES, Identification, PieceLabels
 from multislit.identify.rig import RigGeometry
 from multislit.identify.segments import split_at_brightness_steps
+from multislit.identify.shadows import shadow_factors
 from multislit.stripes import SlitExtraction
 
 F64 = NDArray[np.float64]
@@ -178,23 +179,30 @@ def identify_geometry(
     # often than a stretch of one: its coupling weighs less
     lr = np.log(gp.spacing_ratio) / math.log(_SPACING_TOLERANCE)
     regular = np.where(np.isfinite(lr), np.exp(-0.5 * lr**2), 1.0)
-    lab = label_pieces(
-        scores,
-        gp.a,
-        gp.b,
-        between,
-        np.isfinite(ge.graze) & (ge.graze < _GRAZE),
-        gp.rows,
-        ca,
-        cb,
-        bonus,
-        change,
-        coupling=_COUPLING * regular,
-        gap_pair=win.segment[gp.a] * (int(win.segment.max()) + 1) + win.segment[gp.b],
-        repeat_penalty=_REPEAT_PENALTY,
-        split_penalty=_SPLIT,
-        cont_ties=vouch,
-    )
+
+    def labelling(factors=None):
+        return label_pieces(
+            scores,
+            gp.a,
+            gp.b,
+            between,
+            np.isfinite(ge.graze) & (ge.graze < _GRAZE),
+            gp.rows,
+            ca,
+            cb,
+            bonus,
+            change,
+            coupling=_COUPLING * regular,
+            gap_pair=win.segment[gp.a] * (int(win.segment.max()) + 1) + win.segment[gp.b],
+            repeat_penalty=_REPEAT_PENALTY,
+            split_penalty=_SPLIT,
+            cont_ties=vouch,
+            factors=factors,
+        )
+
+    lab = labelling()
+    sure = (lab.slit >= 0) & (lab.confidence >= options.confidence) & (lab.support >= _MIN_SUPPORT)
+    lab = labelling(shadow_factors(ev.span, lab.slit, sure))
     accepted = (
         (lab.slit >= 0) & (lab.confidence >= options.confidence) & (lab.support >= _MIN_SUPPORT)
     )

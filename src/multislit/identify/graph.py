@@ -148,20 +148,29 @@ def _damped(old, new, damping):
 
 
 @njit(cache=True)
-def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, sweeps, damping):
+def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_slit, f_cost,
+               f_start, f_cand, sweeps, damping):  # fmt: skip
     """Loopy max-product belief propagation; the beliefs (S, L) and the messages along each
-    edge (gaps, then continuations) to its second piece and to its first (E, L) each."""
+    edge (gaps, then continuations) to its second piece and to its first (E, L) each.
+
+    Beside the edges, "one of them" factors: factor f wants one of its candidate pieces
+    ``f_cand[f_start[f]:f_start[f+1]]`` to carry slit ``f_slit[f]`` and costs ``f_cost[f]``
+    when none does; its message favours that slit for a candidate by the least regret of the
+    other candidates to carry it (at most the cost)."""
     nl = unary.shape[1]
     ng = len(ga)
     ne = ng + len(ca)
     # messages: edge e forward (to its second piece) and backward (to its first)
     fwd = np.zeros((ne, nl))
     bwd = np.zeros((ne, nl))
+    orm = np.zeros(len(f_cand))  # factor -> candidate: how much its slit is favoured
     belief = unary.copy()
     tmp = np.empty(nl)
+    reg = np.empty(len(f_cand))
     for _ in range(sweeps):
         moved = 0.0
         _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
+        _gather_factors(f_slit, f_start, f_cand, orm, belief)
         for e in range(ne):
             a = ga[e] if e < ng else ca[e - ng]
             b = gb[e] if e < ng else cb[e - ng]
@@ -176,10 +185,45 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, swee
                 else:
                     _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
                 moved = max(moved, _damped(fwd[e] if forward else bwd[e], tmp, damping))
+        for f in range(len(f_slit)):
+            k = f_slit[f]
+            r1 = r2 = np.inf
+            i1 = -1
+            for q in range(f_start[f], f_start[f + 1]):
+                i = f_cand[q]
+                # the candidate's regret to carry k, without this factor's message
+                top = belief[i, k]
+                for l in range(nl):
+                    if l != k:
+                        top = max(top, belief[i, l] + orm[q])
+                r = top - belief[i, k]
+                reg[q] = r
+                if r < r1:
+                    r2, r1, i1 = r1, r, q
+                elif r < r2:
+                    r2 = r
+            for q in range(f_start[f], f_start[f + 1]):
+                x = min(f_cost[f], r2 if q == i1 else r1)
+                new = damping * orm[q] + (1.0 - damping) * x
+                moved = max(moved, abs(new - orm[q]))
+                orm[q] = new
         if moved < _SETTLED:
             break
     _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
+    _gather_factors(f_slit, f_start, f_cand, orm, belief)
     return belief, fwd, bwd
+
+
+@njit(cache=True, inline="always")
+def _gather_factors(f_slit, f_start, f_cand, orm, belief):
+    """``belief`` (S, L) gains each factor's message: its slit favoured by ``orm`` over the
+    others."""
+    for f in range(len(f_slit)):
+        k = f_slit[f]
+        for q in range(f_start[f], f_start[f + 1]):
+            i = f_cand[q]
+            belief[i, :] -= orm[q]
+            belief[i, k] += orm[q]
 
 
 def label_pieces(
@@ -199,6 +243,7 @@ def label_pieces(
     split_penalty: float,
     gap_pair: I64 | None = None,
     cont_ties: NDArray[np.bool_] | None = None,
+    factors: tuple | None = None,
 ) -> Labelling:
     """The labelling of the frame's pieces (see the module's docstring).
 
@@ -227,6 +272,9 @@ def label_pieces(
         on them (default all). The frame is labelled a second time without the continuations
         that do not vouch; a piece whose best slit differs there rests on them alone, and its
         confidence is 0.
+    factors : (slit (F,), cost (F,), start (F+1,), candidates (M,)) or None: "one of them"
+        factors (:func:`_propagate`): factor f costs ``cost[f]`` unless one of the pieces
+        ``candidates[start[f]:start[f+1]]`` carries ``slit[f]``
     repeat_penalty : log-likelihood lost by a gap whose pieces carry one slit
     split_penalty : log-likelihood lost by a gap whose pieces carry two slits that are not
         neighbours of one surface (a step in depth)
@@ -245,6 +293,14 @@ def label_pieces(
         _, pair = np.unique(np.asarray(gap_pair), return_inverse=True)
         share = rows / np.maximum(np.bincount(pair, rows)[pair], _COUPLING_ROWS)
     cw = np.broadcast_to(np.asarray(coupling, np.float64), w.shape) * share
+    if factors is None:
+        factors = (np.zeros(0, np.int64), np.zeros(0), np.zeros(1, np.int64), np.zeros(0, np.int64))
+    fk, fc, fs, fm = (
+        np.asarray(factors[0], np.int64),
+        np.asarray(factors[1], np.float64),
+        np.asarray(factors[2], np.int64),
+        np.asarray(factors[3], np.int64),
+    )
     theta = np.where(cont, cw[:, None] + gap_bonus, np.nan)
     belief, fwd, bwd = _propagate(
         np.ascontiguousarray(u, np.float64),
@@ -257,6 +313,10 @@ def label_pieces(
         np.asarray(cont_b, np.int64),
         np.asarray(cont_bonus, np.float64),
         np.asarray(cont_change, np.float64),
+        fk,
+        fc,
+        fs,
+        fm,
         _SWEEPS,
         _DAMPING,
     )
@@ -289,6 +349,10 @@ def label_pieces(
             np.asarray(cont_b, np.int64)[keep],
             np.asarray(cont_bonus, np.float64)[keep],
             np.asarray(cont_change, np.float64)[keep],
+            fk,
+            fc,
+            fs,
+            fm,
             _SWEEPS,
             _DAMPING,
         )

@@ -1,0 +1,75 @@
+"""Shadows in the labelling: a stripe broken off on one surface wants a caster in front."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from multislit.identify.graph import label_pieces
+from multislit.identify.shadows import SHADOW_COST, shadow_factors
+
+
+def _span(rows: list[tuple[int, int, float, float, float]], w: int, n: int) -> np.ndarray:
+    span = np.full((w, n, 3), np.nan)
+    for win, k, lo, hi, r in rows:
+        span[win, k] = (lo, hi, r)
+    return span
+
+
+def test_a_gap_at_one_range_wants_a_caster_in_front_of_it():
+    """Slit 3 lights a wall (range 1000 mm) from psi 0 to 0.1 and from 0.2 on: its rays in
+    between lit something nearer. Window 2 under slit 3 lies there at 900 mm (a caster);
+    window 3 at the wall's range (the wall's own stripe where an object hides it, not a
+    caster) and window 4 outside the gap are not candidates."""
+    span = _span(
+        [
+            (0, 3, 0.0, 0.1, 1000.0),
+            (1, 3, 0.2, 0.3, 1000.0),
+            (2, 3, 0.12, 0.18, 900.0),
+            (3, 3, 0.12, 0.18, 998.0),
+            (4, 3, 0.31, 0.35, 900.0),
+        ],
+        5,
+        6,
+    )
+    label = np.array([3, 3, -1, -1, -1])
+    sure = np.array([True, True, False, False, False])
+    slit, cost, start, cand = shadow_factors(span, label, sure)
+    assert slit.tolist() == [3] and cost.tolist() == [SHADOW_COST]
+    assert cand[start[0] : start[1]].tolist() == [2]
+
+
+def test_no_gap_where_the_stripe_resumes_on_another_surface():
+    span = _span(
+        [(0, 3, 0.0, 0.1, 1000.0), (1, 3, 0.2, 0.3, 1100.0), (2, 3, 0.12, 0.18, 900.0)], 3, 6
+    )
+    slit, _, _, cand = shadow_factors(span, np.array([3, 3, -1]), np.array([True, True, False]))
+    assert slit.size == 0 and cand.size == 0
+
+
+def test_one_of_the_candidates_casts_the_shadow():
+    """Two candidates prefer slit 0 by 1 and by 3 nats over slit 2; a gap in slit 2 that
+    costs 4 nats unexplained goes to the one that gives up least (the first), and the other
+    keeps its slit."""
+    n = 4
+    unary = np.zeros((2, n))
+    unary[0, 0], unary[1, 0] = 1.0, 3.0
+    none = np.zeros(0, np.int64)
+    common = {
+        "gap_a": none,
+        "gap_b": none,
+        "gap_bonus": np.zeros((0, n)),
+        "gap_continuous": np.zeros((0, n), bool),
+        "gap_rows": none,
+        "cont_a": none,
+        "cont_b": none,
+        "cont_bonus": np.zeros(0),
+        "cont_change": np.zeros(0),
+        "coupling": 6.0,
+        "repeat_penalty": 30.0,
+        "split_penalty": 0.0,
+    }
+    alone = label_pieces(unary, **common)
+    assert alone.slit.tolist() == [0, 0]
+    factors = (np.array([2]), np.array([4.0]), np.array([0, 2]), np.array([0, 1]))
+    cast = label_pieces(unary, **common, factors=factors)
+    assert cast.slit.tolist() == [2, 0]
