@@ -51,9 +51,8 @@ from multislit.stripes.dots import (
     dot_response,
     dots_clear_of_stripes,
     find_dots,
-    level_bin,
-    response_at,
     stripe_maps,
+    z_at,
 )
 from multislit.stripes.separation import saturation_level_of
 
@@ -71,7 +70,7 @@ P_VISIBLE = 0.85
 #: brightness, and a dimmer one than expected must still count.
 ALPHA_SHARE = 0.6
 #: Tilts of the surface across the stripe tried on either side of 0 (up to atan(SLOPE_MAX)).
-_SLOPE_STEPS = 8
+_SLOPE_STEPS = 4
 #: The frame's density of dots weighs in the local one as much as this many px of the place's
 #: own neighbourhood (a place with few pixels of a zone around it takes the frame's density) ...
 _PRIOR_AREA = 400.0
@@ -86,6 +85,8 @@ _CURVE_STRIDE = 4
 BLOCK_PX = 4
 #: ... which is 2 ** this.
 _SHIFT = 2
+#: Levels of the chance of a dot by chance that the table of :func:`dot_llr` holds.
+_CHANCE_LEVELS = 24
 #: Cell of the observed dots' look-up grid, px.
 _CELL = 4.0
 #: Most records of found dots of one window and slit.
@@ -243,9 +244,33 @@ class FrameDots:
     response: DotResponse
     beta: float
 
-    def kernel_args(self) -> tuple:
-        """(smoothed, reach, edges, offset, sigma, near zone, p_false, P_VISIBLE)."""
-        return (*self.response.kernel_args(), self.near_zone, self.p_false, P_VISIBLE)
+    def kernel_args(self) -> tuple[tuple, tuple]:
+        """What the kernels read (:func:`_soft`): the response (its
+        :meth:`~multislit.stripes.dots.DotResponse.kernel_args`) and the chance of a dot by
+        chance with the table of :func:`dot_llr`: (near zone (H, W) uint8, the chance's level
+        per zone and block (2, Hb, Wb) uint8, logit of each level (Q,), the table (Q, T), its
+        first ``y`` and its steps per unit of ``y``)."""
+        levels, table, lo, scale = _llr_table()
+        q = np.searchsorted(0.5 * (levels[1:] + levels[:-1]), self.p_false).astype(np.uint8)
+        chance = (self.near_zone, q, np.log(levels / (1.0 - levels)), table, lo, scale)
+        return self.response.kernel_args(), chance
+
+
+_TABLE: dict = {}
+
+
+def _llr_table() -> tuple[F64, F64, float, float]:
+    """The chance levels (Q,) and :func:`dot_llr` tabulated per level over ``y`` (Q, T),
+    with ``y`` of entry i ``lo + i / scale``; made once."""
+    if not _TABLE:
+        levels = np.geomspace(_MIN_P_FALSE, 0.5, _CHANCE_LEVELS)
+        lo, hi, scale = -40.0, 40.0, 20.0
+        y = lo + np.arange(int((hi - lo) * scale) + 1) / scale
+        pc = levels[:, None]
+        p = P_VISIBLE
+        table = np.log(1.0 - p + (p / pc) / (1.0 + np.exp(-y[None, :])))
+        _TABLE["t"] = (levels, np.ascontiguousarray(table), lo, scale)
+    return _TABLE["t"]
 
 
 def _rig_args(rig: RigGeometry) -> tuple:
@@ -523,45 +548,50 @@ def _direction(phi, psi, F):
     )
 
 
-@njit(cache=True, inline="always")
-def _dot_llr(z, alpha, p_vis, p_c):
+def dot_llr(z: F64, alpha: F64, p_c: F64) -> F64:
     """Log-likelihood ratio of a predicted dot whose place shows the response ``z`` (noise
-    sigmas) where a dot would show ``alpha``: the dot is there with the chance ``p_vis``
-    (against ``p_c``, a dot there by chance), else the place shows noise. Between
-    log(1 - p_vis) (nothing where a bright dot must be) and log(p_vis / p_c) (a bright dot
-    there); near 0 where ``alpha`` is small (a dark surface: its dots say little)."""
-    ll = alpha * z - 0.5 * alpha * alpha
-    if ll > 40.0:
-        return math.log(1.0 - p_vis + p_vis / p_c)
-    lam = math.exp(ll)
-    return math.log(1.0 - p_vis + p_vis * lam / ((1.0 - p_c) + p_c * lam))
+    sigmas) where a dot would show ``alpha``: the dot is there with the chance
+    :data:`P_VISIBLE` (against ``p_c``, a dot there by chance), else the place shows noise.
+    Between log(1 - P_VISIBLE) (nothing where a bright dot must be) and about
+    log(P_VISIBLE / p_c) (a bright dot there); near 0 where ``alpha`` is small (a dark
+    surface: its dots say little). With ``lambda = exp(alpha z - alpha^2 / 2)``:
+    ``log(1 - p + p lambda / ((1 - p_c) + p_c lambda))``, written with the logistic function
+    of ``alpha z - alpha^2 / 2 + logit(p_c)``."""
+    p = P_VISIBLE
+    y = np.asarray(alpha) * np.asarray(z) - 0.5 * np.asarray(alpha) ** 2
+    y = y + np.log(np.asarray(p_c) / (1.0 - np.asarray(p_c)))
+    return np.log(1.0 - p + (p / np.asarray(p_c)) / (1.0 + np.exp(-y)))
 
 
 @njit(cache=True, inline="always")
-def _soft(u0, v0, su, sv, amp, sm, reach, edges, offset, sigma, zone_m, pc, p_vis):
+def _soft(u0, v0, su, sv, amp, resp, chance):
     """(usable, log-likelihood ratio) of a dot predicted at (u0, v0) px beside a stripe of
-    direction (``su``, ``sv``) on which a dot's response is ``amp`` (intensity units): read
-    from the frame's dots' response there (:func:`~multislit.stripes.dots.response_at`), in
-    noise sigmas of its zone and level. Not usable outside the image or on saturated places."""
-    h, w = zone_m.shape
+    direction (``su``, ``sv``) on which a dot's response is ``amp`` (intensity units): the
+    frame's dots' response there in noise sigmas of its zone and level
+    (:func:`~multislit.stripes.dots.z_at`), read through the frame's table of
+    :func:`dot_llr` (``chance``, :meth:`FrameDots.kernel_args`). Not usable outside the image
+    or on saturated places."""
+    sm, reach, lut_lo, lut_scale, lut_off, lut_inv = resp
+    zone_m, pcl, logit_q, tab, tab_lo, tab_scale = chance
+    h, w = chance[0].shape
     if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
-        return False, 0.0
-    r, level = response_at(sm, u0, v0, su, sv, reach)
-    if not np.isfinite(r):
         return False, 0.0
     iv = int(v0 + 0.5)
     iu = int(u0 + 0.5)
-    z = zone_m[iv, iu]
-    b = level_bin(edges[z], level)
-    s = sigma[z, b]
-    x = _dot_llr((r - offset[z, b]) / s, ALPHA_SHARE * amp / s, p_vis,
-                 pc[z, iv >> _SHIFT, iu >> _SHIFT])  # fmt: skip
-    return True, x
+    zn = zone_m[iv, iu]
+    z, inv = z_at(sm, u0, v0, su, sv, zn, reach, lut_lo, lut_scale, lut_off, lut_inv)
+    if not np.isfinite(z):
+        return False, 0.0
+    q = pcl[zn, iv >> _SHIFT, iu >> _SHIFT]
+    a = ALPHA_SHARE * amp * inv
+    y = a * z - 0.5 * a * a + logit_q[q]
+    i = int((y - tab_lo) * tab_scale + 0.5)
+    i = min(max(i, 0), tab.shape[1] - 1)
+    return True, tab[q, i]
 
 
 @njit(cache=True)
-def _dot_path(u0, v0, um, vm, up, vp, G, su, sv, amp, sm, reach, edges, offset, sigma, zone_m,
-              pc, p_vis, gvals, score, count):  # fmt: skip
+def _dot_path(u0, v0, um, vm, up, vp, G, su, sv, amp, resp, chance, gvals, score, count):  # fmt: skip
     """Add one predicted dot to the slope grid ``gvals`` (S,): at each slope its place on the
     path ``p(g)`` (the parabola through (um, vm), (u0, v0), (up, vp) at g = -G, 0, G) is read
     by :func:`_soft`; ``score`` (S,) gains its log-likelihood ratio, ``count`` (S,) counts the
@@ -572,8 +602,7 @@ def _dot_path(u0, v0, um, vm, up, vp, G, su, sv, amp, sm, reach, edges, offset, 
     cv = (vp + vm - 2.0 * v0) / (2.0 * G * G)
     for gi in range(len(gvals)):
         g = gvals[gi]
-        ok, x = _soft(u0 + bu * g + cu * g * g, v0 + bv * g + cv * g * g, su, sv, amp, sm,
-                      reach, edges, offset, sigma, zone_m, pc, p_vis)  # fmt: skip
+        ok, x = _soft(u0 + bu * g + cu * g * g, v0 + bv * g + cv * g * g, su, sv, amp, resp, chance)  # fmt: skip
         if ok:
             score[gi] += x
             if x > 0.0:
@@ -596,13 +625,13 @@ def _log_mean_exp(x):
 @njit(cache=True)
 def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb, phi_sign,
                       O, F, dphi, dpsi, d_order, b_start, phi0, bw, cam, R, t, dist, su, sv,
-                      amp, beta, sm, reach, edges, offset, sigma, zone_m, pc, p_vis, G, gvals,
+                      amp, beta, resp, chance, G, gvals,
                       score, count, nuse):  # fmt: skip
     """The dots of one slit hypothesis of a window (its curve ``ps``, ``ph``, ``rr`` sorted by
     ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``): per side, into ``score``
     (2, S) and ``count`` (2, S) over the slopes ``gvals`` when ``full``, else at the slope 0
     only (column 0); ``nuse`` (2,) the dots in the image."""
-    h, w = zone_m.shape
+    h, w = chance[0].shape
     nb = len(b_start) - 1
     b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
     b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
@@ -626,8 +655,7 @@ def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb,
             nuse[side] += 1
             a = beta[j] * amp
             if not full:
-                ok, x = _soft(u0, v0, su, sv, a, sm, reach, edges, offset, sigma, zone_m, pc,
-                              p_vis)  # fmt: skip
+                ok, x = _soft(u0, v0, su, sv, a, resp, chance)  # fmt: skip
                 if ok:
                     score[side, 0] += x
                     if x > 0.0:
@@ -639,15 +667,13 @@ def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb,
             up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
             if not (np.isfinite(um) and np.isfinite(up)):
                 um, vm, up, vp = u0, v0, u0, v0
-            _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, sm, reach, edges, offset, sigma,
-                      zone_m, pc, p_vis, gvals, score[side], count[side])  # fmt: skip
+            _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, resp, chance, gvals, score[side], count[side])  # fmt: skip
 
 
 @njit(cache=True)
 def _window_kernel(
     C, rays, order, win_start, planes, hyp, O, F, dphi, dpsi, d_order, b_start, phi0, bw,
-    half_band, phi_sign, cam, R, t, dist, zmin, zmax, wsu, wsv, wamp, beta, sm, reach, edges,
-    offset, sigma, zone_m, pc, p_vis, G, steps, keep, llr, found, used, slope, kept, span,
+    half_band, phi_sign, cam, R, t, dist, zmin, zmax, wsu, wsv, wamp, beta, resp, chance, G, steps, keep, llr, found, used, slope, kept, span,
 ):  # fmt: skip
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
     ``used`` and ``slope`` and per (window, slit) into ``span``: every slit at the slope 0
@@ -707,8 +733,7 @@ def _window_kernel(
                 _score_hypothesis(rnd == 1, ps[idx[0]], ps[idx[nc - 1]], phmin, phmax, ps, ph,
                                   rr, idx, nc, half_band[k], phi_sign, O, F, dphi, dpsi,
                                   d_order, b_start, phi0, bw, cam, R, t, dist, wsu[wi],
-                                  wsv[wi], wamp[wi], beta, sm, reach, edges, offset, sigma,
-                                  zone_m, pc, p_vis, G, gvals, score, count, nuse)  # fmt: skip
+                                  wsv[wi], wamp[wi], beta, resp, chance, G, gvals, score, count, nuse)  # fmt: skip
                 for sd in range(2):
                     if rnd == 0:  # the marginal's lower bound: the slope 0 alone
                         llr[wi, k, sd] = score[sd, 0] - math.log(ns)
@@ -739,13 +764,12 @@ def _slope_grid(G, steps):
 @njit(cache=True)
 def _gap_kernel(
     C, rays, a_order, a_start, b_order, b_start_, planes, O, F, dphi, dpsi, d_order, b_start,
-    phi0, bw, half_band, cam, R, t, dist, zmin, zmax, gsu, gsv, gamp, beta, sm, reach, edges,
-    offset, sigma, zone_m, pc, p_vis, G, steps, pairs, fixed, free_a, free_b, graze,
+    phi0, bw, half_band, cam, R, t, dist, zmin, zmax, gsu, gsv, gamp, beta, resp, chance, G, steps, pairs, fixed, free_a, free_b, graze,
 ):  # fmt: skip
     """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one)."""
     ngap = len(a_start) - 1
     nslit = planes.shape[0]
-    h, w = zone_m.shape
+    h, w = chance[0].shape
     nb = len(b_start) - 1
     maxt = 1
     for p in range(ngap):
@@ -837,8 +861,7 @@ def _gap_kernel(
                     r = ra + f * (rb - ra)
                     u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
                     a = beta[j] * gamp[p]
-                    ok, x = _soft(u0, v0, gsu[p], gsv[p], a, sm, reach, edges, offset, sigma,
-                                  zone_m, pc, p_vis)  # fmt: skip
+                    ok, x = _soft(u0, v0, gsu[p], gsv[p], a, resp, chance)  # fmt: skip
                     if ok:
                         fx += x
                     # the same dot with a free slope about the nearer stripe
@@ -860,8 +883,7 @@ def _gap_kernel(
                     )
                     if not (np.isfinite(um) and np.isfinite(up)):
                         um, vm, up, vp = u0, v0, u0, v0
-                    _dot_path(u0, v0, um, vm, up, vp, G, gsu[p], gsv[p], a, sm, reach, edges,
-                              offset, sigma, zone_m, pc, p_vis, gvals, score[side],
+                    _dot_path(u0, v0, um, vm, up, vp, G, gsu[p], gsv[p], a, resp, chance, gvals, score[side],
                               count[side])  # fmt: skip
             fixed[p, k] = fx
             free_a[p, k] = _log_mean_exp(score[0])[0]

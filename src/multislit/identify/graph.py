@@ -40,10 +40,10 @@ I64 = NDArray[np.int64]
 #: Rows two pieces must share for their coupling to count in full.
 _COUPLING_ROWS = 40.0
 #: Belief propagation: sweeps and damping (share of the old message kept).
-_SWEEPS = 30
+_SWEEPS = 10
 _DAMPING = 0.5
 #: ... stopping early once no message moves by more than this (nats).
-_SETTLED = 0.01
+_SETTLED = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,32 +121,6 @@ def _continuation_message(h, bonus, change, out):
         out[k] = max(_max_except(h, t1, t2, t3, k, -2) - change, h[k] + bonus)
 
 
-@njit(cache=True, inline="always")
-def _gather(unary, ga, gb, ca, cb, fwd, bwd, belief):
-    """``belief`` (S, L) = ``unary`` plus every message into each piece."""
-    ng = len(ga)
-    belief[:, :] = unary
-    for e in range(fwd.shape[0]):
-        a = ga[e] if e < ng else ca[e - ng]
-        b = gb[e] if e < ng else cb[e - ng]
-        for k in range(fwd.shape[1]):
-            belief[b, k] += fwd[e, k]
-            belief[a, k] += bwd[e, k]
-
-
-@njit(cache=True, inline="always")
-def _damped(old, new, damping):
-    """``old`` (L,) moved towards ``new`` (L,) less its maximum, keeping the share
-    ``damping``; returns the largest move."""
-    m = new.max()
-    moved = 0.0
-    for k in range(len(old)):
-        x = damping * old[k] + (1.0 - damping) * (new[k] - m)
-        moved = max(moved, abs(x - old[k]))
-        old[k] = x
-    return moved
-
-
 @njit(cache=True)
 def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_slit, f_cost,
                f_start, f_cand, sweeps, damping):  # fmt: skip
@@ -156,7 +130,11 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
     Beside the edges, "one of them" factors: factor f wants one of its candidate pieces
     ``f_cand[f_start[f]:f_start[f+1]]`` to carry slit ``f_slit[f]`` and costs ``f_cost[f]``
     when none does; its message favours that slit for a candidate by the least regret of the
-    other candidates to carry it (at most the cost)."""
+    other candidates to carry it (at most the cost).
+
+    The messages are sent one after the other, each piece's belief kept up to date as they
+    arrive, the edges in their order and in reverse by turns (a chain's evidence travels its
+    length in one sweep)."""
     nl = unary.shape[1]
     ng = len(ga)
     ne = ng + len(ca)
@@ -166,25 +144,30 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
     orm = np.zeros(len(f_cand))  # factor -> candidate: how much its slit is favoured
     belief = unary.copy()
     tmp = np.empty(nl)
-    reg = np.empty(len(f_cand))
-    for _ in range(sweeps):
+    h = np.empty(nl)
+    for sweep in range(sweeps):
         moved = 0.0
-        _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
-        _gather_factors(f_slit, f_start, f_cand, orm, belief)
-        for e in range(ne):
+        for q in range(ne):
+            e = q if sweep % 2 == 0 else ne - 1 - q
             a = ga[e] if e < ng else ca[e - ng]
             b = gb[e] if e < ng else cb[e - ng]
             for forward in (True, False):
                 # from one end of the edge, without what the other end told it
-                if forward:
-                    h = belief[a] - bwd[e]
-                else:
-                    h = belief[b] - fwd[e]
+                src, dst = (a, b) if forward else (b, a)
+                msg = fwd[e] if forward else bwd[e]
+                back = bwd[e] if forward else fwd[e]
+                for k in range(nl):
+                    h[k] = belief[src, k] - back[k]
                 if e < ng:
                     _gap_message(h, theta[e], penalty[e], split[e], forward, tmp)
                 else:
                     _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
-                moved = max(moved, _damped(fwd[e] if forward else bwd[e], tmp, damping))
+                m = tmp.max()
+                for k in range(nl):
+                    x = damping * msg[k] + (1.0 - damping) * (tmp[k] - m)
+                    moved = max(moved, abs(x - msg[k]))
+                    belief[dst, k] += x - msg[k]
+                    msg[k] = x
         for f in range(len(f_slit)):
             k = f_slit[f]
             r1 = r2 = np.inf
@@ -197,7 +180,6 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
                     if l != k:
                         top = max(top, belief[i, l] + orm[q])
                 r = top - belief[i, k]
-                reg[q] = r
                 if r < r1:
                     r2, r1, i1 = r1, r, q
                 elif r < r2:
@@ -206,24 +188,15 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
                 x = min(f_cost[f], r2 if q == i1 else r1)
                 new = damping * orm[q] + (1.0 - damping) * x
                 moved = max(moved, abs(new - orm[q]))
+                i = f_cand[q]
+                # the message favours k by orm: the other labels lose it
+                for l in range(nl):
+                    if l != k:
+                        belief[i, l] -= new - orm[q]
                 orm[q] = new
         if moved < _SETTLED:
             break
-    _gather(unary, ga, gb, ca, cb, fwd, bwd, belief)
-    _gather_factors(f_slit, f_start, f_cand, orm, belief)
     return belief, fwd, bwd
-
-
-@njit(cache=True, inline="always")
-def _gather_factors(f_slit, f_start, f_cand, orm, belief):
-    """``belief`` (S, L) gains each factor's message: its slit favoured by ``orm`` over the
-    others."""
-    for f in range(len(f_slit)):
-        k = f_slit[f]
-        for q in range(f_start[f], f_start[f + 1]):
-            i = f_cand[q]
-            belief[i, :] -= orm[q]
-            belief[i, k] += orm[q]
 
 
 def label_pieces(

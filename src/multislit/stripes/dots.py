@@ -203,6 +203,8 @@ _NOISE_BINS = 12
 _NOISE_SAMPLES = 40000
 #: A bin's noise is never taken as less than this share of its zone's median.
 _NOISE_FLOOR = 0.25
+#: The noise table is read through a look-up of this many levels per zone.
+_LUT = 256
 
 
 @njit(cache=True, inline="always")
@@ -253,6 +255,27 @@ def _responses(smoothed, u, v, su, sv, reach, out, level):
         out[i], level[i] = response_at(smoothed, u[i], v[i], su[i], sv[i], reach)
 
 
+@njit(cache=True, inline="always")
+def z_at(smoothed, u, v, su, sv, zone, reach, lut_lo, lut_scale, lut_offset, lut_inv_sigma):
+    """The dots' response at (u, v) px (:func:`response_at`) in noise sigmas of its ``zone``
+    (0 clear of the stripes, 1 near one) and level, and the inverse of that noise (1 /
+    intensity units); NaN, 0 where it cannot be read."""
+    r, level = response_at(smoothed, u, v, su, sv, reach)
+    if not np.isfinite(r):
+        return np.nan, 0.0
+    i = int((level - lut_lo[zone]) * lut_scale[zone])
+    i = min(max(i, 0), lut_offset.shape[1] - 1)
+    inv = lut_inv_sigma[zone, i]
+    return (r - lut_offset[zone, i]) * inv, inv
+
+
+@njit(cache=True)
+def _zs(smoothed, u, v, su, sv, zone, reach, lut_lo, lut_scale, lut_offset, lut_inv_sigma, out):
+    for i in range(len(u)):
+        out[i], _ = z_at(smoothed, u[i], v[i], su[i], sv[i], zone[i], reach, lut_lo, lut_scale,
+                         lut_offset, lut_inv_sigma)  # fmt: skip
+
+
 @dataclass(frozen=True, eq=False)
 class DotResponse:
     """How strongly each place of a frame looks like a dot, in noise sigmas.
@@ -263,7 +286,8 @@ class DotResponse:
     background cancel; a dot stands out, however faint, and is not thresholded away: the
     identification reads the response where its hypotheses put dots. Its noise is measured on
     the frame beside the stripes, per zone (clear of the stripes, near one: speckle on a stripe
-    is noise there) and per level of the smoothed image (shot noise grows with it).
+    is noise there) and per level of the smoothed image (shot noise grows with it), and read
+    through a look-up table of the level.
 
     Attributes
     ----------
@@ -273,6 +297,9 @@ class DotResponse:
     edges : (2, B + 1) float32, per zone, the level bins of ``smoothed``
     offset, sigma : (2, B) float32, per zone and level bin, the median and the robust sigma
         of the response at places beside the stripes (intensity units)
+    lut_lo, lut_scale : (2,) float64, per zone: level ``x`` is read at entry
+        ``(x - lut_lo) * lut_scale`` of ...
+    lut_offset, lut_inv_sigma : (2, L) float64, ... the bins' median and inverse sigma
     """
 
     smoothed: F32
@@ -280,10 +307,22 @@ class DotResponse:
     edges: F32
     offset: F32
     sigma: F32
+    lut_lo: F64
+    lut_scale: F64
+    lut_offset: F64
+    lut_inv_sigma: F64
 
     def kernel_args(self) -> tuple:
-        """What the compiled kernels read: (smoothed, reach, edges, offset, sigma)."""
-        return self.smoothed, float(self.reach_px), self.edges, self.offset, self.sigma
+        """What the compiled kernels read (:func:`z_at`): (smoothed, reach, lut_lo, lut_scale,
+        lut_offset, lut_inv_sigma)."""
+        return (
+            self.smoothed,
+            float(self.reach_px),
+            self.lut_lo,
+            self.lut_scale,
+            self.lut_offset,
+            self.lut_inv_sigma,
+        )
 
     def at(self, u: ArrayLike, v: ArrayLike, angle: ArrayLike) -> tuple[F64, F64]:
         """The response at (u, v) px along the stripe direction ``angle`` (rad from the
@@ -300,16 +339,13 @@ class DotResponse:
 
     def z(self, u: ArrayLike, v: ArrayLike, angle: ArrayLike, near: ArrayLike) -> F64:
         """(M,) float64: the response at (u, v) in noise sigmas of its zone (``near`` (M,)
-        bool: near a stripe) and level."""
-        r, level = self.at(u, v, angle)
-        u = np.asarray(u, np.float64).ravel()
-        zone = np.broadcast_to(np.asarray(near, bool), u.shape).astype(np.intp)
-        out = np.full(u.size, np.nan)
-        for z in (0, 1):
-            m = (zone == z) & np.isfinite(level)
-            b = np.clip(np.searchsorted(self.edges[z], level[m], side="right") - 1, 0, None)
-            b = np.minimum(b, self.sigma.shape[1] - 1)
-            out[m] = (r[m] - self.offset[z, b]) / self.sigma[z, b]
+        bool: near a stripe) and level (:func:`z_at`); NaN where it cannot be read."""
+        u = np.ascontiguousarray(u, np.float64).ravel()
+        v = np.ascontiguousarray(v, np.float64).ravel()
+        a = np.broadcast_to(np.asarray(angle, np.float64), u.shape)
+        zone = np.ascontiguousarray(np.broadcast_to(np.asarray(near, bool), u.shape), np.intp)
+        out = np.empty(u.size)
+        _zs(self.smoothed, u, v, np.sin(a), np.cos(a), zone, *self.kernel_args()[1:], out)
         return out
 
 
@@ -392,4 +428,20 @@ def dot_response(
         edges[z] = np.nan_to_num(
             e, posinf=np.finfo(np.float32).max, neginf=-np.finfo(np.float32).max
         )
-    return DotResponse(sm, float(reach), edges, offset, sig)
+    # the look-up: _LUT levels over twice the span of the inner edges, each reading its bin
+    lut_lo = np.zeros(2)
+    lut_scale = np.ones(2)
+    lut_off = np.zeros((2, _LUT))
+    lut_inv = np.zeros((2, _LUT))
+    for z in (0, 1):
+        inner = edges[z, 1:-1].astype(np.float64)
+        lo, hi = float(inner[0]), float(inner[-1])
+        if not hi > lo:
+            hi = lo + 1.0
+        lut_lo[z] = lo - 0.5 * (hi - lo)
+        lut_scale[z] = _LUT / (2.0 * (hi - lo))
+        x = lut_lo[z] + (np.arange(_LUT) + 0.5) / lut_scale[z]
+        b = np.clip(np.searchsorted(edges[z], x, side="right") - 1, 0, _NOISE_BINS - 1)
+        lut_off[z] = offset[z, b]
+        lut_inv[z] = 1.0 / sig[z, b]
+    return DotResponse(sm, float(reach), edges, offset, sig, lut_lo, lut_scale, lut_off, lut_inv)
