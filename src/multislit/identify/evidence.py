@@ -109,9 +109,11 @@ class DotEvidence:
     slope : (W, N, 2) float32, the best slope across the stripe
     kept : (W, N) bool, the slits scored with the slope marginalised (those not far below
         the window's best at the slope 0); the others' scores are a lower bound
-    span : (W, N, 3) float32, where window w lies under slit k, seen from the dot source: its
-        least and largest angle along the slits (rad) and its mean range (mm); NaN where slit
-        k puts it outside the measuring volume
+    span : (W, N, 3) float32, where window w lies under slit k, seen from the dot source: the
+        sines of its least and largest angle along the slits and its mean range (mm); NaN
+        where slit k puts it outside the measuring volume
+    means : (W, N, 4) float64, its mean place under slit k, seen from the dot source: cosine
+        and sine of the angle across the slits, sine of the angle along them, range (mm)
     """
 
     llr: F32
@@ -120,6 +122,7 @@ class DotEvidence:
     slope: F32
     kept: NDArray[np.bool_]
     span: F32
+    means: F64
 
 
 @dataclass(frozen=True, eq=False)
@@ -273,23 +276,35 @@ def _llr_table() -> tuple[F64, F64, float, float]:
     return _TABLE["t"]
 
 
-def _rig_args(rig: RigGeometry) -> tuple:
-    """The rig as the kernels read it: (planes, dot source, frame, phi, psi, the dots' look-up
-    order and bins, half bands) and (camera, R, t, distortion, near and far depth)."""
+def _rig_args(rig: RigGeometry) -> tuple[tuple, tuple]:
+    """The rig as the kernels read it: (camera centre, planes, half bands, their sines, the
+    sign of phi from a slit to the next, dot source, dot frame, camera, R, t, distortion, near
+    and far depth) and the dots (directions, cosines and sines of their angles across the
+    slits, sines of their angles along them, their look-up order and bins)."""
     cam, R, t, dist = rig.camera_arrays()
     d_order, b_start, phi0, bw = rig.dot_index()
+    dirs, cp, sp, ss = rig.dot_rays()
+    hb = rig.half_band
     return (
+        rig.camera.centre,
         np.ascontiguousarray(rig.planes),
+        hb,
+        np.where(np.isfinite(hb), np.sin(np.nan_to_num(hb)), 0.0),
+        float(rig.phi_sign),
         rig.dots.source,
         np.ascontiguousarray(rig.dots.frame),
-        rig.dots.phi,
-        rig.dots.psi,
-        d_order,
-        b_start,
-        phi0,
-        bw,
-        rig.half_band,
-    ), (cam, np.ascontiguousarray(R), t, dist, float(rig.depth_range[0]), float(rig.depth_range[1]))
+        cam,
+        np.ascontiguousarray(R),
+        t,
+        dist,
+        float(rig.depth_range[0]),
+        float(rig.depth_range[1]),
+    ), (dirs, cp, sp, ss, d_order, b_start, float(phi0), float(bw))
+
+
+def _beta(rig: RigGeometry, frame: FrameDots) -> F64:
+    """(D,) each dot's response per unit of the stripe's peak beside it: the frame's."""
+    return np.full(rig.dots.num_dots, frame.beta)
 
 
 def window_stripes(extraction, order: NDArray[np.intp], start: NDArray[np.intp]) -> tuple[F64, F64]:
@@ -348,19 +363,18 @@ def dot_evidence(
     slope = np.zeros((nw, n, 2), np.float32)
     kept = np.zeros((nw, n), bool)
     span = np.full((nw, n, 3), np.nan, np.float32)
+    means = np.full((nw, n, 4), np.nan, np.float64)
     if nw:
-        (planes, O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb), cam = _rig_args(rig)
+        rig_k, dots_k = _rig_args(rig)
         _window_kernel(
-            rig.camera.centre,
             np.ascontiguousarray(rays, np.float64),
             order.astype(np.intp),
             win_start.astype(np.intp),
-            planes,
             np.ascontiguousarray(hypotheses),
-            O, F, dphi, dpsi, d_order, b_start, phi0, bw, hb, float(rig.phi_sign),
-            *cam,
+            rig_k,
+            dots_k,
             *_window_args(direction, peak),
-            np.full(rig.dots.num_dots, frame.beta),
+            _beta(rig, frame),
             *frame.kernel_args(),
             SLOPE_MAX,
             _SLOPE_STEPS,
@@ -371,8 +385,9 @@ def dot_evidence(
             slope,
             kept,
             span,
-        )  # fmt: skip
-    return DotEvidence(llr, found, used, slope, kept, span)
+            means,
+        )
+    return DotEvidence(llr, found, used, slope, kept, span, means)
 
 
 def gap_evidence(
@@ -385,6 +400,9 @@ def gap_evidence(
     frame: FrameDots,
     direction: F64,
     peak: F64,
+    gap_a: NDArray[np.intp],
+    gap_b: NDArray[np.intp],
+    evidence: DotEvidence,
     pairs: NDArray[np.bool_] | None = None,
 ) -> GapEvidence:
     """The dots between pieces side by side in the rows, as one surface and apart.
@@ -399,6 +417,8 @@ def gap_evidence(
     frame : the frame's dots
     direction : (P,) float64, rad, the stripes' direction at each gap (from the vertical)
     peak : (P,) float64, the stripes' peak at each gap (intensity units)
+    gap_a, gap_b : (P,) intp, the windows of each gap (left, right)
+    evidence : the windows' :class:`DotEvidence` (their mean places under each slit)
     pairs : (P, N) bool, the slits k of the left piece (k + 1 of the right) worth scoring;
         default all
 
@@ -415,18 +435,20 @@ def gap_evidence(
     if pairs is None:
         pairs = np.ones((ng, n), bool)
     if ng:
-        (planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb), cam = _rig_args(rig)
+        rig_k, dots_k = _rig_args(rig)
         _gap_kernel(
-            rig.camera.centre,
             np.ascontiguousarray(rays, np.float64),
             a_order.astype(np.intp),
             a_start.astype(np.intp),
             b_order.astype(np.intp),
             b_start.astype(np.intp),
-            planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb,
-            *cam,
+            np.asarray(gap_a, np.intp),
+            np.asarray(gap_b, np.intp),
+            evidence.means,
+            rig_k,
+            dots_k,
             *_window_args(direction, peak),
-            np.full(rig.dots.num_dots, frame.beta),
+            _beta(rig, frame),
             *frame.kernel_args(),
             SLOPE_MAX,
             _SLOPE_STEPS,
@@ -435,7 +457,7 @@ def gap_evidence(
             free_a,
             free_b,
             graze,
-        )  # fmt: skip
+        )
     return GapEvidence(fixed, free_a, free_b, graze)
 
 
@@ -457,26 +479,29 @@ def _project(x, y, z, cam, R, t, dist):
 
 
 @njit(cache=True)
-def _curve(C, rays, order, a0, nt, plane, O, F, R, t, ps, ph, rr, idx):
+def _curve(C, rays, order, a0, nt, plane, O, F, R, t, cp, sp, ss, rr, idx):
     """The stripe points ``order[a0:a0+nt]`` (every :data:`_CURVE_STRIDE`-th and the last)
-    under a slit plane (4,): their angles (``ph`` across, ``ps`` along) and range ``rr`` seen
-    from the dot source, and ``idx`` their order by ``ps``. Returns (ok, mean camera depth,
-    the number of curve points); not ok where a line of sight misses the plane or meets it
-    behind the camera."""
+    under a slit plane (4,), seen from the dot source: the cosine ``cp`` and sine ``sp`` of
+    their angle across the slits, the sine ``ss`` of their angle along them and their range
+    ``rr``, with ``idx`` their order along the slits. Returns (ok, mean camera depth, the
+    number of curve points, the least and the largest angle across the slits); not ok where a
+    line of sight misses the plane or meets it behind the camera."""
     nx_, ny_, nz_, nd_ = plane[0], plane[1], plane[2], plane[3]
     if not np.isfinite(nx_):
-        return False, 0.0, 0
+        return False, 0.0, 0, 0.0, 0.0
     num = -(nx_ * C[0] + ny_ * C[1] + nz_ * C[2] + nd_)
     zsum = 0.0
+    tmin = np.inf
+    tmax = -np.inf
     m = (nt - 1) // _CURVE_STRIDE + 2 if nt > 1 else 1
     for i in range(m):
         p = order[a0 + min(i * _CURVE_STRIDE, nt - 1)]
         den = nx_ * rays[p, 0] + ny_ * rays[p, 1] + nz_ * rays[p, 2]
         if abs(den) < 1e-12:
-            return False, 0.0, 0
+            return False, 0.0, 0, 0.0, 0.0
         s = num / den
         if s <= 0:
-            return False, 0.0, 0
+            return False, 0.0, 0, 0.0, 0.0
         X = C[0] + s * rays[p, 0]
         Y = C[1] + s * rays[p, 1]
         Z = C[2] + s * rays[p, 2]
@@ -485,28 +510,35 @@ def _curve(C, rays, order, a0, nt, plane, O, F, R, t, ps, ph, rr, idx):
         lx = F[0, 0] * qx + F[0, 1] * qy + F[0, 2] * qz
         ly = F[1, 0] * qx + F[1, 1] * qy + F[1, 2] * qz
         lz = F[2, 0] * qx + F[2, 1] * qy + F[2, 2] * qz
-        rn = math.sqrt(lx * lx + ly * ly + lz * lz)
-        ph[i] = math.atan2(lx, lz)
-        ps[i] = math.asin(min(1.0, max(-1.0, ly / rn)))
+        hn = math.sqrt(lx * lx + lz * lz)
+        rn = math.sqrt(hn * hn + ly * ly)
+        if lz <= 0.0:
+            return False, 0.0, 0, 0.0, 0.0
+        cp[i] = lz / hn
+        sp[i] = lx / hn
+        ss[i] = ly / rn
         rr[i] = rn
         idx[i] = i
-    for i in range(1, m):  # by psi (insertion sort: the points come nearly in order)
+        tmin = min(tmin, lx / lz)
+        tmax = max(tmax, lx / lz)
+    for i in range(1, m):  # along the slits (insertion sort: the points come nearly in order)
         j = i
-        while j > 0 and ps[idx[j - 1]] > ps[idx[j]]:
+        while j > 0 and ss[idx[j - 1]] > ss[idx[j]]:
             tmp = idx[j - 1]
             idx[j - 1] = idx[j]
             idx[j] = tmp
             j -= 1
-    return True, zsum / m, m
+    return True, zsum / m, m, math.atan(tmin), math.atan(tmax)
 
 
 @njit(cache=True, inline="always")
-def _first_from(dpsi, d_order, lo, hi, psmin):
-    """The first position q in ``lo .. hi`` of a bin of ``d_order`` (its dots by psi) whose
-    dot has ``dpsi`` >= ``psmin`` (``hi``: none)."""
+def _first_from(key, d_order, lo, hi, smin):
+    """The first position q in ``lo .. hi`` of a bin of ``d_order`` (its dots along the
+    slits) whose dot has ``key`` (the sine of its angle along the slits) >= ``smin`` (``hi``:
+    none)."""
     while lo < hi:
         mid = (lo + hi) // 2
-        if dpsi[d_order[mid]] < psmin:
+        if key[d_order[mid]] < smin:
             lo = mid + 1
         else:
             hi = mid
@@ -514,53 +546,31 @@ def _first_from(dpsi, d_order, lo, hi, psmin):
 
 
 @njit(cache=True, inline="always")
-def _at(ps, ph, rr, idx, nt, psj):
-    """The curve's (phi, range) at ``psj``, linear between its points sorted by ``psi``."""
+def _at(ss, cp, sp, rr, idx, nt, ssj):
+    """The curve's cosine and sine across the slits and its range where the sine of its angle
+    along them is ``ssj``, linear between its points."""
     m = 0
-    while m < nt - 2 and ps[idx[m + 1]] < psj:
+    while m < nt - 2 and ss[idx[m + 1]] < ssj:
         m += 1
     i0 = idx[m]
     i1 = idx[min(m + 1, nt - 1)]
-    span = ps[i1] - ps[i0]
-    f = (psj - ps[i0]) / span if span > 1e-15 else 0.0
+    span = ss[i1] - ss[i0]
+    f = (ssj - ss[i0]) / span if span > 1e-15 else 0.0
     f = min(1.0, max(0.0, f))
-    return ph[i0] + f * (ph[i1] - ph[i0]), rr[i0] + f * (rr[i1] - rr[i0])
-
-
-@njit(cache=True, inline="always")
-def _range(rc, phc, phj, g):
-    """The range of a dot at the angle ``phj`` across the slits on the plane through the curve's
-    point at the angle ``phc`` and range ``rc`` (same angle along the slits), tilted about the
-    slit axis by atan(g) from facing the dot source's axis: g = 0 is a plane at right angles to
-    the dots' mean ray."""
-    return rc * (math.cos(phc) + g * math.sin(phc)) / (math.cos(phj) + g * math.sin(phj))
-
-
-@njit(cache=True, inline="always")
-def _direction(phi, psi, F):
-    """World unit direction of the dot-frame angles (phi, psi)."""
-    cp = math.cos(psi)
-    lx, ly, lz = math.sin(phi) * cp, math.sin(psi), math.cos(phi) * cp
     return (
-        F[0, 0] * lx + F[1, 0] * ly + F[2, 0] * lz,
-        F[0, 1] * lx + F[1, 1] * ly + F[2, 1] * lz,
-        F[0, 2] * lx + F[1, 2] * ly + F[2, 2] * lz,
+        cp[i0] + f * (cp[i1] - cp[i0]),
+        sp[i0] + f * (sp[i1] - sp[i0]),
+        rr[i0] + f * (rr[i1] - rr[i0]),
     )
 
 
-def dot_llr(z: F64, alpha: F64, p_c: F64) -> F64:
-    """Log-likelihood ratio of a predicted dot whose place shows the response ``z`` (noise
-    sigmas) where a dot would show ``alpha``: the dot is there with the chance
-    :data:`P_VISIBLE` (against ``p_c``, a dot there by chance), else the place shows noise.
-    Between log(1 - P_VISIBLE) (nothing where a bright dot must be) and about
-    log(P_VISIBLE / p_c) (a bright dot there); near 0 where ``alpha`` is small (a dark
-    surface: its dots say little). With ``lambda = exp(alpha z - alpha^2 / 2)``:
-    ``log(1 - p + p lambda / ((1 - p_c) + p_c lambda))``, written with the logistic function
-    of ``alpha z - alpha^2 / 2 + logit(p_c)``."""
-    p = P_VISIBLE
-    y = np.asarray(alpha) * np.asarray(z) - 0.5 * np.asarray(alpha) ** 2
-    y = y + np.log(np.asarray(p_c) / (1.0 - np.asarray(p_c)))
-    return np.log(1.0 - p + (p / np.asarray(p_c)) / (1.0 + np.exp(-y)))
+@njit(cache=True, inline="always")
+def _range(rc, cpc, spc, cpj, spj, g):
+    """The range of a dot at the angle (cosine ``cpj``, sine ``spj``) across the slits on the
+    plane through the curve's point at the angle (``cpc``, ``spc``) and range ``rc`` (same angle
+    along the slits), tilted about the slit axis by atan(g) from facing the dot source's axis:
+    g = 0 is a plane at right angles to the dots' mean ray."""
+    return rc * (cpc + g * spc) / (cpj + g * spj)
 
 
 @njit(cache=True, inline="always")
@@ -623,72 +633,73 @@ def _log_mean_exp(x):
 
 
 @njit(cache=True)
-def _score_hypothesis(full, psmin, psmax, phmin, phmax, ps, ph, rr, idx, nc, hb, phi_sign,
-                      O, F, dphi, dpsi, d_order, b_start, phi0, bw, cam, R, t, dist, su, sv,
-                      amp, beta, resp, chance, G, gvals,
-                      score, count, nuse):  # fmt: skip
-    """The dots of one slit hypothesis of a window (its curve ``ps``, ``ph``, ``rr`` sorted by
-    ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``): per side, into ``score``
-    (2, S) and ``count`` (2, S) over the slopes ``gvals`` when ``full``, else at the slope 0
-    only (column 0); ``nuse`` (2,) the dots in the image."""
+def _score_hypothesis(full, k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dots,
+                      su, sv, amp, beta, resp, chance, G, gvals, score, count, nuse):  # fmt: skip
+    """The dots of window's slit hypothesis ``k`` (its curve ``cp``, ``sp``, ``ss``, ``rr``
+    sorted by ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``): per side, into
+    ``score`` (2, S) and ``count`` (2, S) over the slopes ``gvals`` when ``full``, else at the
+    slope 0 only (column 0); ``nuse`` (2,) the dots in the image."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
     h, w = chance[0].shape
     nb = len(b_start) - 1
-    b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
-    b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
+    b0 = max(0, int(math.floor((phmin - hb[k] - phi0) / bw)))
+    b1 = min(nb - 1, int(math.floor((phmax + hb[k] - phi0) / bw)))
     for b in range(b0, b1 + 1):
-        lo = _first_from(dpsi, d_order, b_start[b], b_start[b + 1], psmin)
+        lo = _first_from(dss, d_order, b_start[b], b_start[b + 1], ssmin)
         for q in range(lo, b_start[b + 1]):
             j = d_order[q]
-            psj = dpsi[j]
-            if psj > psmax:
+            ssj = dss[j]
+            if ssj > ssmax:
                 break
-            phc, rc = _at(ps, ph, rr, idx, nc, psj)
-            delta = dphi[j] - phc
-            if abs(delta) > hb:
+            cpc, spc, rc = _at(ss, cp, sp, rr, idx, nc, ssj)
+            sd = dsp[j] * cpc - dcp[j] * spc  # the sine of the dot's angle from the curve
+            if abs(sd) > shb[k]:
                 continue
-            side = 1 if delta * phi_sign > 0 else 0
-            dx, dy, dz = _direction(dphi[j], psj, F)
-            r0 = _range(rc, phc, dphi[j], 0.0)
+            side = 1 if sd * phi_sign > 0 else 0
+            dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            r0 = _range(rc, cpc, spc, dcp[j], dsp[j], 0.0)
             u0, v0 = _project(O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist)
             if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                 continue
             nuse[side] += 1
             a = beta[j] * amp
             if not full:
-                ok, x = _soft(u0, v0, su, sv, a, resp, chance)  # fmt: skip
+                ok, x = _soft(u0, v0, su, sv, a, resp, chance)
                 if ok:
                     score[side, 0] += x
                     if x > 0.0:
                         count[side, 0] += 1
                 continue
-            rm = _range(rc, phc, dphi[j], -G)
-            rp = _range(rc, phc, dphi[j], G)
+            rm = _range(rc, cpc, spc, dcp[j], dsp[j], -G)
+            rp = _range(rc, cpc, spc, dcp[j], dsp[j], G)
             um, vm = _project(O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist)
             up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
             if not (np.isfinite(um) and np.isfinite(up)):
                 um, vm, up, vp = u0, v0, u0, v0
-            _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, resp, chance, gvals, score[side], count[side])  # fmt: skip
+            _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, resp, chance, gvals, score[side],
+                      count[side])  # fmt: skip
 
 
 @njit(cache=True)
-def _window_kernel(
-    C, rays, order, win_start, planes, hyp, O, F, dphi, dpsi, d_order, b_start, phi0, bw,
-    half_band, phi_sign, cam, R, t, dist, zmin, zmax, wsu, wsv, wamp, beta, resp, chance, G, steps, keep, llr, found, used, slope, kept, span,
-):  # fmt: skip
+def _window_kernel(rays, order, win_start, hyp, rig, dots, wsu, wsv, wamp, beta, resp, chance,
+                   G, steps, keep, llr, found, used, slope, kept, span, means):  # fmt: skip
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
-    ``used`` and ``slope`` and per (window, slit) into ``span``: every slit at the slope 0
-    first, then those within ``keep`` of the
-    window's best with the slope marginalised (the others keep the marginal's lower bound:
-    their score at the slope 0 as if all other slopes found nothing)."""
+    ``used`` and ``slope``, per (window, slit) into ``span`` and ``means``: every slit at the
+    slope 0 first, then those within ``keep`` of the window's best with the slope
+    marginalised (the others keep the marginal's lower bound: their score at the slope 0 as if
+    all other slopes found nothing)."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     nw = len(win_start) - 1
     nslit = planes.shape[0]
     gvals = _slope_grid(G, steps)
     ns = len(gvals)
-    maxt = 1
+    maxt = 2
     for wi in range(nw):
-        maxt = max(maxt, win_start[wi + 1] - win_start[wi])
-    ps = np.empty(maxt)
-    ph = np.empty(maxt)
+        maxt = max(maxt, (win_start[wi + 1] - win_start[wi] - 1) // _CURVE_STRIDE + 2)
+    cp = np.empty(maxt)
+    sp = np.empty(maxt)
+    ss = np.empty(maxt)
     rr = np.empty(maxt)
     idx = np.empty(maxt, np.int64)
     score = np.zeros((2, ns))
@@ -709,31 +720,33 @@ def _window_kernel(
                     quick[k] = -np.inf
                 elif not quick[k] >= quick[ranked[0]] - keep:  # (also -inf)
                     break
-                if not hyp[wi, k] or not np.isfinite(half_band[k]):
+                if not hyp[wi, k] or not np.isfinite(hb[k]):
                     continue
-                ok, zmean, nc = _curve(
-                    C, rays, order, a0, nt, planes[k], O, F, R, t, ps, ph, rr, idx
+                ok, zmean, nc, phmin, phmax = _curve(
+                    C, rays, order, a0, nt, planes[k], O, F, R, t, cp, sp, ss, rr, idx
                 )
                 if not ok or zmean < zmin or zmean > zmax:
                     continue
-                phmin, phmax = ph[0], ph[0]
-                for i in range(nc):
-                    phmin = min(phmin, ph[i])
-                    phmax = max(phmax, ph[i])
                 if rnd == 0:
-                    span[wi, k, 0] = ps[idx[0]]
-                    span[wi, k, 1] = ps[idx[nc - 1]]
-                    rsum = 0.0
+                    span[wi, k, 0] = ss[idx[0]]
+                    span[wi, k, 1] = ss[idx[nc - 1]]
+                    m0 = m1 = m2 = m3 = 0.0
                     for i in range(nc):
-                        rsum += rr[i]
-                    span[wi, k, 2] = rsum / nc
+                        m0 += cp[i]
+                        m1 += sp[i]
+                        m2 += ss[i]
+                        m3 += rr[i]
+                    span[wi, k, 2] = m3 / nc
+                    means[wi, k, 0] = m0 / nc
+                    means[wi, k, 1] = m1 / nc
+                    means[wi, k, 2] = m2 / nc
+                    means[wi, k, 3] = m3 / nc
                 score[:] = 0.0
                 count[:] = 0
                 nuse[:] = 0
-                _score_hypothesis(rnd == 1, ps[idx[0]], ps[idx[nc - 1]], phmin, phmax, ps, ph,
-                                  rr, idx, nc, half_band[k], phi_sign, O, F, dphi, dpsi,
-                                  d_order, b_start, phi0, bw, cam, R, t, dist, wsu[wi],
-                                  wsv[wi], wamp[wi], beta, resp, chance, G, gvals, score, count, nuse)  # fmt: skip
+                _score_hypothesis(rnd == 1, k, ss[idx[0]], ss[idx[nc - 1]], phmin, phmax, cp, sp,
+                                  ss, rr, idx, nc, rig, dots, wsu[wi], wsv[wi], wamp[wi], beta,
+                                  resp, chance, G, gvals, score, count, nuse)  # fmt: skip
                 for sd in range(2):
                     if rnd == 0:  # the marginal's lower bound: the slope 0 alone
                         llr[wi, k, sd] = score[sd, 0] - math.log(ns)
@@ -761,25 +774,43 @@ def _slope_grid(G, steps):
     return out
 
 
+@njit(cache=True, inline="always")
+def _point(O, F, cp, sp, ss, r):
+    """The world point at range ``r`` from the dot source in the direction of the angles
+    (cosine ``cp``, sine ``sp`` across the slits; sine ``ss`` along them)."""
+    cs = math.sqrt(max(0.0, 1.0 - ss * ss))
+    lx, ly, lz = sp * cs, ss, cp * cs
+    return (
+        O[0] + r * (F[0, 0] * lx + F[1, 0] * ly + F[2, 0] * lz),
+        O[1] + r * (F[0, 1] * lx + F[1, 1] * ly + F[2, 1] * lz),
+        O[2] + r * (F[0, 2] * lx + F[1, 2] * ly + F[2, 2] * lz),
+    )
+
+
 @njit(cache=True)
-def _gap_kernel(
-    C, rays, a_order, a_start, b_order, b_start_, planes, O, F, dphi, dpsi, d_order, b_start,
-    phi0, bw, half_band, cam, R, t, dist, zmin, zmax, gsu, gsv, gamp, beta, resp, chance, G, steps, pairs, fixed, free_a, free_b, graze,
-):  # fmt: skip
+def _gap_kernel(rays, a_order, a_start, b_order, b_start_, ga, gb, means, rig, dots, gsu, gsv,
+                gamp, beta, resp, chance, G, steps, pairs, fixed, free_a, free_b,
+                graze):  # fmt: skip
     """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one)."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
     ngap = len(a_start) - 1
     nslit = planes.shape[0]
     h, w = chance[0].shape
     nb = len(b_start) - 1
-    maxt = 1
+    maxt = 2
     for p in range(ngap):
-        maxt = max(maxt, a_start[p + 1] - a_start[p], b_start_[p + 1] - b_start_[p])
-    psa = np.empty(maxt)
-    pha = np.empty(maxt)
+        na_ = (a_start[p + 1] - a_start[p] - 1) // _CURVE_STRIDE + 2
+        nb_ = (b_start_[p + 1] - b_start_[p] - 1) // _CURVE_STRIDE + 2
+        maxt = max(maxt, na_, nb_)
+    cpa = np.empty(maxt)
+    spa = np.empty(maxt)
+    ssa = np.empty(maxt)
     rra = np.empty(maxt)
     ia = np.empty(maxt, np.int64)
-    psb = np.empty(maxt)
-    phb = np.empty(maxt)
+    cpb = np.empty(maxt)
+    spb = np.empty(maxt)
+    ssb = np.empty(maxt)
     rrb = np.empty(maxt)
     ib = np.empty(maxt, np.int64)
     gvals = _slope_grid(G, steps)
@@ -790,46 +821,20 @@ def _gap_kernel(
         c0, nb0 = b_start_[p], b_start_[p + 1] - b_start_[p]
         if na0 < 2 or nb0 < 2:
             continue
+        wa, wb = ga[p], gb[p]
         for k in range(nslit - 1):
-            if not (np.isfinite(half_band[k]) and np.isfinite(half_band[k + 1])):
-                continue
-            oka, za, na = _curve(
-                C, rays, a_order, a0, na0, planes[k], O, F, R, t, psa, pha, rra, ia
-            )
-            if not oka or za < zmin or za > zmax:
-                continue
-            okb, zb, nbp = _curve(
-                C, rays, b_order, c0, nb0, planes[k + 1], O, F, R, t, psb, phb, rrb, ib
-            )
-            if not okb or zb < zmin or zb > zmax:
-                continue
-            psmin = max(psa[ia[0]], psb[ib[0]])
-            psmax = min(psa[ia[na - 1]], psb[ib[nbp - 1]])
-            if psmax <= psmin:
-                continue
-            phmin, phmax = pha[0], pha[0]
-            for i in range(na):
-                phmin = min(phmin, pha[i])
-                phmax = max(phmax, pha[i])
-            for i in range(nbp):
-                phmin = min(phmin, phb[i])
-                phmax = max(phmax, phb[i])
-            b0 = max(0, int(math.floor((phmin - phi0) / bw)))
-            b1 = min(nb - 1, int(math.floor((phmax - phi0) / bw)))
+            ma, mb = means[wa, k], means[wb, k + 1]
+            if not (np.isfinite(ma[3]) and np.isfinite(mb[3])):
+                continue  # a window outside the measuring volume (or a slit without a plane)
             # how nearly the surface through both stripes grazes the camera's or the dot
-            # source's line of sight, midway
-            psm = 0.5 * (psmin + psmax)
-            pa, ra = _at(psa, pha, rra, ia, na, psm)
-            pb, rb = _at(psb, phb, rrb, ib, nbp, psm)
-            ax_, ay_, az_ = _direction(pa, psm, F)
-            bx_, by_, bz_ = _direction(pb, psm, F)
-            sx = rb * bx_ - ra * ax_
-            sy = rb * by_ - ra * ay_
-            sz = rb * bz_ - ra * az_
+            # source's line of sight: from each window's mean place, across the slits only
+            xa, ya, za = _point(O, F, ma[0], ma[1], ma[2], ma[3])
+            xb, yb, zb = _point(O, F, mb[0], mb[1], mb[2], mb[3])
+            sx, sy, sz = xb - xa, yb - ya, zb - za
+            along = sx * F[1, 0] + sy * F[1, 1] + sz * F[1, 2]
+            sx, sy, sz = sx - along * F[1, 0], sy - along * F[1, 1], sz - along * F[1, 2]
             sn = math.sqrt(sx * sx + sy * sy + sz * sz) + 1e-12
-            mx = O[0] + 0.5 * (ra * ax_ + rb * bx_)
-            my = O[1] + 0.5 * (ra * ay_ + rb * by_)
-            mz = O[2] + 0.5 * (ra * az_ + rb * bz_)
+            mx, my, mz = 0.5 * (xa + xb), 0.5 * (ya + yb), 0.5 * (za + zb)
             cx_, cy_, cz_ = mx - C[0], my - C[1], mz - C[2]
             cn = math.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_)
             qx_, qy_, qz_ = mx - O[0], my - O[1], mz - O[2]
@@ -839,42 +844,58 @@ def _gap_kernel(
             graze[p, k] = max(g1, g2)
             if not pairs[p, k]:
                 continue
+            oka, _, na, pha0, pha1 = _curve(
+                C, rays, a_order, a0, na0, planes[k], O, F, R, t, cpa, spa, ssa, rra, ia
+            )
+            okb, _, nbp, phb0, phb1 = _curve(
+                C, rays, b_order, c0, nb0, planes[k + 1], O, F, R, t, cpb, spb, ssb, rrb, ib
+            )
+            if not (oka and okb):
+                continue
+            ssmin = max(ssa[ia[0]], ssb[ib[0]])
+            ssmax = min(ssa[ia[na - 1]], ssb[ib[nbp - 1]])
+            if ssmax <= ssmin:
+                continue
+            b0 = max(0, int(math.floor((min(pha0, phb0) - phi0) / bw)))
+            b1 = min(nb - 1, int(math.floor((max(pha1, phb1) - phi0) / bw)))
             fx = 0.0
             score[:] = 0.0
             count[:] = 0
             for bb in range(b0, b1 + 1):
-                lo = _first_from(dpsi, d_order, b_start[bb], b_start[bb + 1], psmin)
+                lo = _first_from(dss, d_order, b_start[bb], b_start[bb + 1], ssmin)
                 for q in range(lo, b_start[bb + 1]):
                     j = d_order[q]
-                    psj = dpsi[j]
-                    if psj > psmax:
+                    ssj = dss[j]
+                    if ssj > ssmax:
                         break
-                    pa, ra = _at(psa, pha, rra, ia, na, psj)
-                    pb, rb = _at(psb, phb, rrb, ib, nbp, psj)
-                    if abs(pb - pa) < 1e-12:
+                    cpa_, spa_, ra = _at(ssa, cpa, spa, rra, ia, na, ssj)
+                    cpb_, spb_, rb = _at(ssb, cpb, spb, rrb, ib, nbp, ssj)
+                    # the dot's place across, from a's stripe (0) to b's (1)
+                    width = spb_ * cpa_ - cpb_ * spa_
+                    if abs(width) < 1e-12:
                         continue
-                    f = (dphi[j] - pa) / (pb - pa)
+                    f = (dsp[j] * cpa_ - dcp[j] * spa_) / width
                     if f <= 0.0 or f >= 1.0:
                         continue
-                    dx, dy, dz = _direction(dphi[j], psj, F)
+                    dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
                     # the surface between the two stripes: range linear across
                     r = ra + f * (rb - ra)
                     u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
                     a = beta[j] * gamp[p]
-                    ok, x = _soft(u0, v0, gsu[p], gsv[p], a, resp, chance)  # fmt: skip
+                    ok, x = _soft(u0, v0, gsu[p], gsv[p], a, resp, chance)
                     if ok:
                         fx += x
                     # the same dot with a free slope about the nearer stripe
                     side = 0 if f <= 0.5 else 1
-                    pc_, rc = (pa, ra) if side == 0 else (pb, rb)
-                    r0 = _range(rc, pc_, dphi[j], 0.0)
+                    cpc, spc, rc = (cpa_, spa_, ra) if side == 0 else (cpb_, spb_, rb)
+                    r0 = _range(rc, cpc, spc, dcp[j], dsp[j], 0.0)
                     u0, v0 = _project(
                         O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist
                     )
                     if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                         continue
-                    rm = _range(rc, pc_, dphi[j], -G)
-                    rp = _range(rc, pc_, dphi[j], G)
+                    rm = _range(rc, cpc, spc, dcp[j], dsp[j], -G)
+                    rp = _range(rc, cpc, spc, dcp[j], dsp[j], G)
                     um, vm = _project(
                         O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
                     )
@@ -883,8 +904,8 @@ def _gap_kernel(
                     )
                     if not (np.isfinite(um) and np.isfinite(up)):
                         um, vm, up, vp = u0, v0, u0, v0
-                    _dot_path(u0, v0, um, vm, up, vp, G, gsu[p], gsv[p], a, resp, chance, gvals, score[side],
-                              count[side])  # fmt: skip
+                    _dot_path(u0, v0, um, vm, up, vp, G, gsu[p], gsv[p], a, resp, chance, gvals,
+                              score[side], count[side])  # fmt: skip
             fixed[p, k] = fx
             free_a[p, k] = _log_mean_exp(score[0])[0]
             free_b[p, k] = _log_mean_exp(score[1])[0]
@@ -967,20 +988,20 @@ def _nearest_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell):
 
 
 @njit(cache=True)
-def _match_kernel(
-    C, rays, order, win_start, windows, labels, slopes, planes, O, F, dphi, dpsi, d_order,
-    b_start, phi0, bw, half_band, phi_sign, cam, R, t, dist, ou, ov, g_order, g_start, gnx,
-    gny, cell, tol, out_obs, out_dot, out_win,
-):  # fmt: skip
+def _match_kernel(rays, order, win_start, windows, labels, slopes, rig, dots, ou, ov, g_order,
+                  g_start, gnx, gny, cell, tol, out_obs, out_dot, out_win):  # fmt: skip
     """:func:`dot_matches`: per window of ``windows`` with slit ``labels`` and the slopes
     ``slopes`` (W', 2) per side, the observed dot nearest each predicted dot (within
     ``tol``); returns how many pairs were written."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
     nb = len(b_start) - 1
-    maxt = 1
+    maxt = 2
     for wi in range(len(win_start) - 1):
-        maxt = max(maxt, win_start[wi + 1] - win_start[wi])
-    ps = np.empty(maxt)
-    ph = np.empty(maxt)
+        maxt = max(maxt, (win_start[wi + 1] - win_start[wi] - 1) // _CURVE_STRIDE + 2)
+    cp = np.empty(maxt)
+    sp = np.empty(maxt)
+    ss = np.empty(maxt)
     rr = np.empty(maxt)
     idx = np.empty(maxt, np.int64)
     n = 0
@@ -989,33 +1010,30 @@ def _match_kernel(
         k = labels[i]
         a0 = win_start[wi]
         nt = win_start[wi + 1] - a0
-        ok, _, nc = _curve(C, rays, order, a0, nt, planes[k], O, F, R, t, ps, ph, rr, idx)
+        ok, _, nc, phmin, phmax = _curve(
+            C, rays, order, a0, nt, planes[k], O, F, R, t, cp, sp, ss, rr, idx
+        )
         if not ok:
             continue
-        psmin, psmax = ps[idx[0]], ps[idx[nc - 1]]
-        phmin, phmax = ph[0], ph[0]
-        for q in range(nc):
-            phmin = min(phmin, ph[q])
-            phmax = max(phmax, ph[q])
-        hb = half_band[k]
-        b0 = max(0, int(math.floor((phmin - hb - phi0) / bw)))
-        b1 = min(nb - 1, int(math.floor((phmax + hb - phi0) / bw)))
+        ssmin, ssmax = ss[idx[0]], ss[idx[nc - 1]]
+        b0 = max(0, int(math.floor((phmin - hb[k] - phi0) / bw)))
+        b1 = min(nb - 1, int(math.floor((phmax + hb[k] - phi0) / bw)))
         for b in range(b0, b1 + 1):
-            for q in range(b_start[b], b_start[b + 1]):
+            lo = _first_from(dss, d_order, b_start[b], b_start[b + 1], ssmin)
+            for q in range(lo, b_start[b + 1]):
                 j = d_order[q]
-                psj = dpsi[j]
-                if psj < psmin:
-                    continue
-                if psj > psmax:
+                if dss[j] > ssmax:
                     break
-                phc, rc = _at(ps, ph, rr, idx, nc, psj)
-                delta = dphi[j] - phc
-                if abs(delta) > hb:
+                cpc, spc, rc = _at(ss, cp, sp, rr, idx, nc, dss[j])
+                sd = dsp[j] * cpc - dcp[j] * spc
+                if abs(sd) > shb[k]:
                     continue
-                side = 1 if delta * phi_sign > 0 else 0
-                dx, dy, dz = _direction(dphi[j], psj, F)
-                r = _range(rc, phc, dphi[j], slopes[i, side])
-                u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
+                side = 1 if sd * phi_sign > 0 else 0
+                r = _range(rc, cpc, spc, dcp[j], dsp[j], slopes[i, side])
+                u0, v0 = _project(
+                    O[0] + r * dirs[j, 0], O[1] + r * dirs[j, 1], O[2] + r * dirs[j, 2], cam, R,
+                    t, dist,
+                )  # fmt: skip
                 if not np.isfinite(u0):
                     continue
                 o = _nearest_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell)
@@ -1061,18 +1079,17 @@ def dot_matches(
     out_win = np.empty(cap, np.int64)
     n = 0
     if len(windows):
-        (planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb), cam = _rig_args(rig)
+        rig_k, dots_k = _rig_args(rig)
         g_order, g_start, gnx, gny = frame.grid
         n = _match_kernel(
-            rig.camera.centre,
             np.ascontiguousarray(rays, np.float64),
             order.astype(np.intp),
             win_start.astype(np.intp),
             np.asarray(windows, np.intp),
             np.asarray(labels, np.intp),
             np.ascontiguousarray(slopes, np.float64),
-            planes, O, F, dphi, dpsi, d_order, bst, phi0, bw, hb, float(rig.phi_sign),
-            *cam[:4],
+            rig_k,
+            dots_k,
             frame.dots.u,
             frame.dots.v,
             g_order,
@@ -1084,7 +1101,7 @@ def dot_matches(
             out_obs,
             out_dot,
             out_win,
-        )  # fmt: skip
+        )
     obs, dot, win = out_obs[:n], out_dot[:n], out_win[:n]
     # one ray per observed dot and one observed dot per ray
     once = (np.bincount(obs, minlength=len(frame.dots))[obs] == 1) & (

@@ -170,6 +170,9 @@ def identify_geometry(
         frame,
         0.5 * (w_dir[gp.a] + w_dir[gp.b]),
         np.sqrt(w_peak[gp.a] * w_peak[gp.b]),
+        gp.a,
+        gp.b,
+        ev,
         pairs,
     )
     ca, cb, bonus, change, vouch = _continuations(ex, ex.segment.astype(np.int64), segment, win)

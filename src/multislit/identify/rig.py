@@ -73,6 +73,22 @@ class RigGeometry:
         d[: len(c.dist)] = c.dist
         return np.array([c.fx, c.fy, c.cx, c.cy]), c.R, c.t, d
 
+    def dot_rays(self) -> tuple[F64, F64, F64, F64]:
+        """The dots' rays as the kernels read them (kept with the rig): unit directions (D, 3)
+        in the world frame, the cosine and the sine of their angle across the slits (D,) and
+        the sine of their angle along them (D,)."""
+        if "rays" not in self._index:
+            phi, psi = self.dots.phi, self.dots.psi
+            cs = np.cos(psi)
+            local = np.stack([np.sin(phi) * cs, np.sin(psi), np.cos(phi) * cs], axis=1)
+            self._index["rays"] = (
+                np.ascontiguousarray(local @ self.dots.frame),
+                np.cos(phi),
+                np.sin(phi),
+                np.sin(psi),
+            )
+        return self._index["rays"]
+
     def dot_index(self) -> tuple[NDArray[np.intp], NDArray[np.intp], float, float]:
         """The dots ordered for look-ups by angle (kept with the rig): (order (D,), bin_start
         (B+1,), phi0, bin_width): the dots of bin b (``phi`` in [phi0 + b w, phi0 + (b+1) w))
