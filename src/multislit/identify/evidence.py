@@ -85,6 +85,8 @@ _CURVE_STRIDE = 4
 BLOCK_PX = 4
 #: ... which is 2 ** this.
 _SHIFT = 2
+#: The dots' brightness relative to the stripes is the median over at most about this many.
+_BRIGHTNESS_SAMPLE = 1000
 #: Levels of the chance of a dot by chance that the table of :func:`dot_llr` holds.
 _CHANCE_LEVELS = 24
 #: Cell of the observed dots' look-up grid, px.
@@ -178,9 +180,10 @@ def false_match_map(
     hb, wb = -(-h // BLOCK_PX), -(-w // BLOCK_PX)
     pad = np.zeros((hb * BLOCK_PX, wb * BLOCK_PX), np.float32)
     pad[:h, :w] = near_zone
-    near_area = pad.reshape(hb, BLOCK_PX, wb, BLOCK_PX).sum(axis=(1, 3))
+    # the blocks' sums: their means (OpenCV's area resampling) times their size
+    near_area = cv2.resize(pad, (wb, hb), interpolation=cv2.INTER_AREA) * np.float32(BLOCK_PX**2)
     pad[:h, :w] = ~near_zone
-    clear_area = pad.reshape(hb, BLOCK_PX, wb, BLOCK_PX).sum(axis=(1, 3))
+    clear_area = cv2.resize(pad, (wb, hb), interpolation=cv2.INTER_AREA) * np.float32(BLOCK_PX**2)
     r = np.clip(dots.v.astype(np.intp) // BLOCK_PX, 0, hb - 1)
     c = np.clip(dots.u.astype(np.intp) // BLOCK_PX, 0, wb - 1)
     k = 2 * max(1, int(round(radius_px / BLOCK_PX))) + 1
@@ -951,17 +954,21 @@ def frame_dots(extraction, spacing_px: float) -> FrameDots:
 
 def _dot_brightness(ex, dots: DotCentres, response: DotResponse, spacing_px: float) -> float:
     """The dots' response per unit of the peak of the stripe nearest them: the median over
-    the dots found clear of the stripes within a slit spacing of a stripe centre (1 where
-    there are none)."""
+    (a sample of :data:`_BRIGHTNESS_SAMPLE` of) the dots found clear of the stripes within a
+    slit spacing of a stripe centre (every fourth centre); 1 where there are none."""
     if len(dots) == 0 or len(ex.u) == 0:
         return 1.0
-    tree = cKDTree(np.stack([ex.u, ex.v], axis=1))
-    d, i = tree.query(dots.uv, distance_upper_bound=max(float(spacing_px), 1.0))
+    step = max(1, len(dots) // _BRIGHTNESS_SAMPLE)
+    u, v = dots.u[::step], dots.v[::step]
+    centre = np.arange(0, len(ex.u), 4)
+    tree = cKDTree(np.stack([ex.u[centre], ex.v[centre]], axis=1))
+    d, i = tree.query(np.stack([u, v], axis=1), distance_upper_bound=max(float(spacing_px), 1.0))
     ok = np.isfinite(d)
     if not ok.any():
         return 1.0
-    r, _ = response.at(dots.u[ok], dots.v[ok], np.nan_to_num(ex.angle[i[ok]]))
-    ratio = r / np.maximum(ex.peak[i[ok]], 1e-9)
+    i = centre[i[ok]]
+    r, _ = response.at(u[ok], v[ok], np.nan_to_num(ex.angle[i]))
+    ratio = r / np.maximum(ex.peak[i], 1e-9)
     ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
     return float(np.median(ratio)) if ratio.size else 1.0
 

@@ -24,7 +24,9 @@ from multislit.geometry.dots import DotProjector
 
 #: The measuring volume's default depths, as fractions of the nearest and the farthest
 #: reference board's depth (camera axis): a slit hypothesis putting a piece outside is ruled out.
-DEFAULT_VOLUME = (0.5, 1.5)
+#: The dot projector's rays were fitted over the boards' depths; a fifth beyond them either way
+#: keeps the hypotheses a surface can have there.
+DEFAULT_VOLUME = (0.8, 1.2)
 
 
 @dataclass(frozen=True, eq=False)

@@ -200,7 +200,7 @@ RESPONSE_REACH = 2.5
 #: Level bins of the response's noise table, per zone (clear of the stripes, near one) ...
 _NOISE_BINS = 12
 #: ... measured at this many places beside the stripes (at most).
-_NOISE_SAMPLES = 40000
+_NOISE_SAMPLES = 12000
 #: A bin's noise is never taken as less than this share of its zone's median.
 _NOISE_FLOOR = 0.25
 #: The noise table is read through a look-up of this many levels per zone.
