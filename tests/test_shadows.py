@@ -73,3 +73,35 @@ def test_one_of_the_candidates_casts_the_shadow():
     factors = (np.array([2]), np.array([4.0]), np.array([0, 2]), np.array([0, 1]))
     cast = label_pieces(unary, **common, factors=factors)
     assert cast.slit.tolist() == [2, 0]
+
+
+def test_a_slit_missing_between_its_neighbours_wants_a_caster():
+    """Slits 2 and 4 run on at 1000 mm over psi 0 to 0.3 and slit 3 is not there between 0.1
+    and 0.2 (it lights the wall elsewhere): something nearer took it. Window 5 under slit 3
+    lies in front of the stretch (a caster); window 6, a stripe at the wall's range under slit
+    3, would mean slit 3 is there."""
+    span = _span(
+        [
+            (0, 2, 0.0, 0.3, 1000.0),
+            (1, 4, 0.0, 0.3, 1000.0),
+            (2, 3, 0.0, 0.1, 1000.0),
+            (3, 3, 0.2, 0.3, 1000.0),
+            (5, 3, 0.12, 0.18, 900.0),
+        ],
+        7,
+        6,
+    )
+    label = np.array([2, 4, 3, 3, -1, -1, -1])
+    sure = np.array([True, True, True, True, False, False, False])
+    slit, _, start, cand = shadow_factors(span, label, sure)
+    assert slit.tolist() == [3] and cand[start[0] : start[1]].tolist() == [5]
+    # without the break in slit 3's own stripe, its neighbours alone say it is missing
+    sure[3] = False
+    label[3] = -1
+    span[3] = np.nan
+    slit, _, start, cand = shadow_factors(span, label, sure)
+    assert slit.tolist() == [3] and cand[start[0] : start[1]].tolist() == [5]
+    # a stripe there at the wall's range under slit 3: not missing
+    span[6, 3] = (0.1, 0.3, 1000.0)
+    slit, _, _, _ = shadow_factors(span, label, sure)
+    assert slit.size == 0
