@@ -46,8 +46,10 @@ from multislit.stripes.sizes import FWHM_PER_SIGMA
 #: The sharp response smooths the image by a Gaussian of this sigma (px): the least that keeps
 #: its noise from being one pixel's.
 _SHARP_SIGMA = 0.5
-#: Degree of the polynomial in (u, v) of the stripes' direction over a board.
+#: Degree of the polynomial in (u, v) of the stripes' direction over a board, fitted to at
+#: most this many of the stripes' points.
 _ANGLE_DEGREE = 3
+_ANGLE_POINTS = 20000
 #: A place is a dot's first guess when the sharp response there is a local maximum of at
 #: least this many noise sigmas ...
 _DETECT_Z = 3.0
@@ -78,19 +80,25 @@ _PROFILE_STEP = 0.05
 #: A place is a second spot only where the response less the fitted spots also exceeds this
 #: share of the fitted spots there (their shape is not exactly a Gaussian's).
 _ADD_SHARE = 0.5
-#: Rounds of the joint fit before and after the dots are added, and of each trial sigma.
-_ROUNDS = (3, 2)
+#: The spots added, and the spots within this many sigmas of them, are fitted again (the
+#: others held).
+_ACTIVE_SIGMAS = 2.5
+#: Rounds of the joint fit before the dots are added, and of the added dots and their
+#: neighbours after.
+_ROUNDS = (3, 6)
 #: Places of a board taken at random to measure the spread of a spot's height fitted there.
 _Z_PLACES = 20000
-#: The rays' fit takes this share of each step of the spots' heights.
+#: The rays' fit takes this share of each step, of the rays' angles at most _MAX_RAY_STEP
+#: pixels' angle.
 _RAY_DAMPING = 0.8
+_MAX_RAY_STEP = 0.5
 #: Half side of the square of pixels each dot is fitted to (px).
 _FIT_HALF = 3
 #: A step of a dot's centre in one round is at most this (px) ...
 _MAX_STEP = 0.5
 #: ... and the rounds take this share of each step (simultaneous steps of neighbouring dots
 #: would overshoot).
-_DAMPING = 0.8
+_DAMPING = 1.0
 #: A fitted dot whose height is below this many of its standard errors is left out.
 _KEEP_Z = 2.0
 
@@ -198,8 +206,9 @@ def angle_field(ex: SlitExtraction, shape: tuple[int, int]) -> NDArray[np.float3
         d = _ANGLE_DEGREE
         return np.stack([x**i * y**j for i in range(d + 1) for j in range(d + 1 - i)], axis=-1)
 
-    b = basis(ex.u[ok], ex.v[ok])
-    a = ex.angle[ok]
+    pick = np.flatnonzero(ok)[:: max(1, int(ok.sum()) // _ANGLE_POINTS)]
+    b = basis(ex.u[pick], ex.v[pick])
+    a = ex.angle[pick]
     wt = np.ones(len(a))
     coef = np.zeros(b.shape[1])
     for _ in range(4):
@@ -381,17 +390,21 @@ def _local_maxima(z: NDArray[np.float32], floor: float, margin: int) -> tuple[F6
     return u.astype(np.float64), v.astype(np.float64)
 
 
-def _fit(sb: SharpBoard, P: F64, A: F64, rounds: int):
+def _fit(sb: SharpBoard, P: F64, A: F64, rounds: int, held: F64 | None = None):
     """``rounds`` rounds of the joint fit of the spots (centres ``P`` (N, 2), heights ``A``)
-    on ``sb``: the fitted centres and heights, their standard errors and residual sums of
-    squares (N, 4), and the fitted model (H, W)."""
+    on ``sb``, beside the spots ``held`` (H, W) (fixed; default none): the fitted centres and
+    heights, their standard errors and residual sums of squares (N, 4), and the fitted model
+    (H, W)."""
     sg = sb.profile
     P = P.copy()
     A = A.copy()
     model = np.zeros(sb.response.shape)
     se = np.zeros((len(P), 4))
     for _ in range(rounds):
-        model[:] = 0.0
+        if held is None:
+            model[:] = 0.0
+        else:
+            model[:] = held
         _splat(P, A, sb.angle, sg, sb.reach, model)
         _jacobi(
             sb.response,
@@ -408,7 +421,7 @@ def _fit(sb: SharpBoard, P: F64, A: F64, rounds: int):
             _DAMPING,
             se,
         )
-    model[:] = 0.0
+    model[:] = 0.0 if held is None else held
     _splat(P, A, sb.angle, sg, sb.reach, model)
     return P, A, se, model
 
@@ -422,29 +435,27 @@ def _gaussian_profile(sg: float, extent: float) -> F64:
 
 
 def _spot_sigma(sb: SharpBoard, P: F64, A: F64, sg0: float) -> float:
-    """The dots' sigma on the sharp response (px): of the trial sigmas around ``sg0``, the one
-    (refined by a parabola) whose Gaussian spots fit the bright dots with no other dot near
-    (``P``, ``A``) best."""
+    """The dots' sigma on the sharp response (px): per bright dot with no other dot near
+    (``P``, ``A``), the trial sigma around ``sg0`` (refined by a parabola) whose Gaussian spot
+    fits it best; their median (two dots blended into one peak want a wider spot, and are few).
+    """
     trials = sg0 * np.array(_SIGMA_TRIALS)
-    ss = np.array(
+    ss = np.stack(
         [
-            float(
-                np.sum(
-                    _fit(replace(sb, profile=_gaussian_profile(t, _PROFILE_SIGMAS * t)), P, A, 2)[
-                        2
-                    ][:, 3]
-                )
-            )
+            _fit(replace(sb, profile=_gaussian_profile(t, _PROFILE_SIGMAS * t)), P, A, 3)[2][:, 3]
             for t in trials
-        ]
+        ],
+        axis=1,
     )
-    k = int(np.argmin(ss))
-    if 0 < k < len(trials) - 1:
-        den = ss[k - 1] - 2.0 * ss[k] + ss[k + 1]
-        if den > 0:
-            off = float(np.clip(0.5 * (ss[k - 1] - ss[k + 1]) / den, -0.5, 0.5))
-            return float(np.interp(k + off, np.arange(len(trials)), trials))
-    return float(trials[k])
+    k = np.argmin(ss, axis=1)
+    kk = np.clip(k, 1, len(trials) - 2)
+    rows = np.arange(len(ss))
+    a, b, c = ss[rows, kk - 1], ss[rows, kk], ss[rows, kk + 1]
+    den = a - 2.0 * b + c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off = np.where(den > 0, np.clip(0.5 * (a - c) / den, -0.5, 0.5), 0.0)
+    pos = np.where((k > 0) & (k < len(trials) - 1), kk + off, k)
+    return float(np.interp(np.median(pos), np.arange(len(trials)), trials))
 
 
 def board_catalogue(view: BoardView) -> tuple[BoardDots, SharpBoard]:
@@ -488,12 +499,31 @@ def board_catalogue(view: BoardView) -> tuple[BoardDots, SharpBoard]:
         np.where(add, res / sb.sigma, np.nan).astype(np.float32), _ADD_Z, _FIT_HALF
     )
     if len(au) and len(P):
-        d, _ = cKDTree(P).query(np.stack([au, av], axis=1))
+        d, j = cKDTree(P).query(np.stack([au, av], axis=1))
         keep = d > _ADD_CLEAR_SIGMAS * sb.spot_sigma
+        # one spot more per fitted spot at most: the clearest of the places beside it (a
+        # spot fitted between two blended dots leaves one on either side)
+        zr = (res / sb.sigma)[av.astype(np.intp), au.astype(np.intp)]
+        order = np.lexsort((-zr, j))
+        first = np.ones(len(j), bool)
+        first[1:] = j[order][1:] != j[order][:-1]
+        best = np.zeros(len(j), bool)
+        best[order[first]] = True
+        keep &= best
         au, av = au[keep], av[keep]
+    n_old = len(P)
     P = np.concatenate([P, np.stack([au, av], axis=1)])
     A = np.concatenate([A, np.maximum(sb.response[av.astype(np.intp), au.astype(np.intp)], 0.0)])
-    P, A, se, _ = _fit(sb, P, A, _ROUNDS[1])
+    # the added spots and their neighbours, fitted on, the others held
+    active = np.zeros(len(P), bool)
+    active[n_old:] = True
+    if n_old < len(P) and n_old:
+        near = cKDTree(P[n_old:]).query_ball_point(P[:n_old], _ACTIVE_SIGMAS * sb.spot_sigma)
+        active[:n_old] = np.array([len(x) > 0 for x in near], bool)
+    held = sb.model(P[~active], A[~active])
+    Pa, Aa, _, _ = _fit(sb, P[active], A[active], _ROUNDS[1], held)
+    P[active], A[active] = Pa, Aa
+    P, A, se, _ = _fit(sb, P, A, 1)
     rng = np.random.default_rng(0)
     places = rng.uniform([0.0, 0.0], [w - 1.0, h - 1.0], (_Z_PLACES, 2))
     zr, _ = sb.spot_fit(places)
@@ -512,7 +542,8 @@ def fit_rays_on_boards(
 ) -> tuple[F64, F64, F64]:
     """One round of the joint fit of rays to the boards: every ray's direction (two angles,
     in pixels' angle) and its spot's height on each board, fitted to all boards at once, each
-    board's response less the other rays' spots and the fixed spots ``base``.
+    board's response less the other rays' spots and the fixed spots ``base``; the rays in turn,
+    each seeing the steps of those before it (Gauss-Seidel).
 
     Parameters
     ----------
@@ -526,7 +557,8 @@ def fit_rays_on_boards(
 
     Returns
     -------
-    step : (N, 2) float64, pixels' angle, the step of each ray's two angles
+    step : (N, 2) float64, pixels' angle, the step of each ray's two angles (damped and
+        clipped: to be taken as it is)
     se : (N, R + 1) float64, the standard errors of the heights on each board and of the
         direction (pixels' angle, the larger axis); 0 where unknown
     chi : (N,) float64, the residuals' sum of squares over the rays' pixels, in noise sigmas
@@ -589,43 +621,20 @@ def _spot(du, dv, tu, tv, prof, reach):
 @njit(cache=True)
 def _splat(P, A, ang, prof, reach, out):
     """Add every dot's spot (height ``A``, centre ``P`` (N, 2)) to ``out`` (H, W)."""
-    h, w = out.shape
-    ext = (prof.shape[0] - 1) * _PROFILE_STEP
-    half = int(math.ceil(ext))
     for i in range(P.shape[0]):
-        pu = P[i, 0]
-        pv = P[i, 1]
-        if not (np.isfinite(pu) and np.isfinite(pv)) or A[i] == 0.0:
-            continue
-        cu = int(np.rint(pu))
-        cv = int(np.rint(pv))
-        a = ang[min(max(cv, 0), h - 1), min(max(cu, 0), w - 1)]
-        tu = math.sin(a)
-        tv = math.cos(a)
-        for j in range(3):  # the spot and its two negative half copies along the stripe
-            s = 0.0 if j == 0 else (-1.0 if j == 1 else 1.0)
-            c = 1.0 if j == 0 else -0.5
-            qu = pu + s * reach * tu
-            qv = pv + s * reach * tv
-            iu = int(np.rint(qu))
-            iv = int(np.rint(qv))
-            for y in range(max(iv - half, 0), min(iv + half + 1, h)):
-                for x in range(max(iu - half, 0), min(iu + half + 1, w)):
-                    g, _, _ = _lobe(x - qu, y - qv, prof)
-                    out[y, x] += c * A[i] * g
+        if np.isfinite(P[i, 0]) and np.isfinite(P[i, 1]):
+            _add_spot(out, P[i, 0], P[i, 1], A[i], ang, prof, reach)
 
 
 @njit(cache=True)
 def _jacobi(r, valid, sig, model, P, A, ang, prof, reach, half, max_step, damping, se):
-    """One round of the joint fit: every dot's centre and height fitted (one Gauss-Newton
-    step) to ``r`` less the other dots' spots (``model`` less its own), all from the same
-    ``model``; ``se`` (N, 4) gets the standard errors of (u, v, height) from the response's
+    """One round of the joint fit: every dot's centre and height fitted in turn (one
+    Gauss-Newton step) to ``r`` less the other dots' spots (``model`` less its own), the
+    ``model`` updated after each dot (Gauss-Seidel); ``se`` (N, 4) gets the standard errors of (u, v, height) from the response's
     noise ``sig`` at the dot, and the sum of squares of the response less the spots over the
     dot's pixels."""
     h, w = r.shape
     n = P.shape[0]
-    newP = P.copy()
-    newA = A.copy()
     for i in range(n):
         pu = P[i, 0]
         pv = P[i, 1]
@@ -679,11 +688,41 @@ def _jacobi(r, valid, sig, model, P, A, ang, prof, reach, half, max_step, dampin
         se[i, 3] = ss
         su = min(max(step[0], -max_step), max_step)
         sv = min(max(step[1], -max_step), max_step)
-        newP[i, 0] = pu + damping * su
-        newP[i, 1] = pv + damping * sv
-        newA[i] = max(ai + damping * step[2], 0.0)
-    P[:, :] = newP
-    A[:] = newA
+        nu = pu + damping * su
+        nv = pv + damping * sv
+        na = max(ai + damping * step[2], 0.0)
+        # the model follows at once (Gauss-Seidel: a blended neighbour fitted next sees it)
+        _add_spot(model, pu, pv, -ai, ang, prof, reach)
+        _add_spot(model, nu, nv, na, ang, prof, reach)
+        P[i, 0] = nu
+        P[i, 1] = nv
+        A[i] = na
+
+
+@njit(cache=True, inline="always")
+def _add_spot(out, pu, pv, a_i, ang, prof, reach):
+    """Add a spot of height ``a_i`` centred at (pu, pv) px to ``out`` (H, W)."""
+    if a_i == 0.0:
+        return
+    h, w = out.shape
+    ext = (prof.shape[0] - 1) * _PROFILE_STEP
+    half = int(math.ceil(ext))
+    cu = int(np.rint(pu))
+    cv = int(np.rint(pv))
+    a = ang[min(max(cv, 0), h - 1), min(max(cu, 0), w - 1)]
+    tu = math.sin(a)
+    tv = math.cos(a)
+    for j in range(3):  # the spot and its two negative half copies along the stripe
+        s = 0.0 if j == 0 else (-1.0 if j == 1 else 1.0)
+        c = 1.0 if j == 0 else -0.5
+        qu = pu + s * reach * tu
+        qv = pv + s * reach * tv
+        iu = int(np.rint(qu))
+        iv = int(np.rint(qv))
+        for y in range(max(iv - half, 0), min(iv + half + 1, h)):
+            for x in range(max(iu - half, 0), min(iu + half + 1, w)):
+                g, _, _ = _lobe(x - qu, y - qv, prof)
+                out[y, x] += c * a_i * g
 
 
 @njit(cache=True)
@@ -749,13 +788,26 @@ def _ray_step(resp, valid, sig, ang, model, uv, jac, A, prof, reach, half, step,
             M[p, p] += lam if used[p] else 1.0
         x_ = np.linalg.solve(M, b)
         cov = np.linalg.inv(M)
-        step[i, 0] = x_[0]
-        step[i, 1] = x_[1]
+        s0 = _RAY_DAMPING * min(max(x_[0], -_MAX_RAY_STEP), _MAX_RAY_STEP)
+        s1 = _RAY_DAMPING * min(max(x_[1], -_MAX_RAY_STEP), _MAX_RAY_STEP)
+        step[i, 0] = s0
+        step[i, 1] = s1
         se[i, nb] = math.sqrt(max(max(cov[0, 0], cov[1, 1]), 0.0))
         for r in range(nb):
-            if used[2 + r]:
-                A[i, r] = max(A[i, r] + _RAY_DAMPING * x_[2 + r], 0.0)
-                se[i, r] = math.sqrt(max(cov[2 + r, 2 + r], 0.0))
+            if not used[2 + r]:
+                continue
+            a_old = A[i, r]
+            A[i, r] = max(a_old + _RAY_DAMPING * x_[2 + r], 0.0)
+            se[i, r] = math.sqrt(max(cov[2 + r, 2 + r], 0.0))
+            # the boards' model follows at once (Gauss-Seidel)
+            pu = uv[i, r, 0]
+            pv = uv[i, r, 1]
+            nu = pu + jac[i, r, 0, 0] * s0 + jac[i, r, 0, 1] * s1
+            nv = pv + jac[i, r, 1, 0] * s0 + jac[i, r, 1, 1] * s1
+            _add_spot(model[r], pu, pv, -a_old, ang[r], prof[r], reach[r])
+            _add_spot(model[r], nu, nv, A[i, r], ang[r], prof[r], reach[r])
+            uv[i, r, 0] = nu
+            uv[i, r, 1] = nv
 
 
 @dataclass(frozen=True, eq=False)

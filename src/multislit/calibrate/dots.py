@@ -127,11 +127,8 @@ _RAY_Z = 5.0
 _MERGE_SIGMAS = 1.0
 #: Rounds of the rays (each from the source the previous one refined).
 _RAY_ROUNDS = 2
-#: Rounds of the rays' joint fit on all boards; each takes this share of its step, at most
-#: this many pixels' angle.
+#: Rounds of the rays' joint fit on all boards.
 _JOINT_ROUNDS = 4
-_DAMPING_RAYS = 0.8
-_MAX_RAY_STEP = 0.5
 #: The step (pixels' angle) of the finite differences of where a ray meets a board.
 _JAC_PX = 0.5
 #: A board shows a ray's dot when its spot's height there reaches this many standard errors.
@@ -896,7 +893,6 @@ def _joint_fit(
     for _ in range(_JOINT_ROUNDS):
         uv, jac, e = _ray_images(o, d, planes, camera, f, shape)
         step, se, _ = fit_rays_on_boards(sharps, uv, jac, A, base)
-        step = _DAMPING_RAYS * np.clip(step, -_MAX_RAY_STEP, _MAX_RAY_STEP)
         d = _unit(d + (step[:, :1] * e[:, 0] + step[:, 1:] * e[:, 1]) / f)
     uv, _, _ = _ray_images(o, d, planes, camera, f, shape)
     se_a = se[:, :R] * np.array([sb.z_scale for sb in sharps])[None, :]
