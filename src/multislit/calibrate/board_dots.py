@@ -85,7 +85,7 @@ _ADD_SHARE = 0.5
 _ACTIVE_SIGMAS = 2.5
 #: Rounds of the joint fit before the dots are added, and of the added dots and their
 #: neighbours after.
-_ROUNDS = (3, 6)
+_ROUNDS = (2, 10)
 #: Places of a board taken at random to measure the spread of a spot's height fitted there.
 _Z_PLACES = 20000
 #: The rays' fit takes this share of each step, of the rays' angles at most _MAX_RAY_STEP

@@ -30,7 +30,7 @@ neighbours on a sharp response in which the stripes cancel). :func:`fit_dot_proj
    place where it would show counts against it. A board where the ray leaves the image or
    meets saturated pixels says nothing;
 4. refines the source over the lines of the candidates that reach :data:`_ACCEPT_NATS` and
-   makes the candidates again from it (twice);
+   makes the candidates again from it;
 5. refines every candidate on all boards at once
    (:func:`~multislit.calibrate.board_dots.fit_rays_on_boards`): its direction and its
    spot's height on each board, fitted to each
@@ -88,8 +88,9 @@ _AXIS_BIN = 4.0
 #: Tolerances (mm) of the lines kept in the successive least-squares refinements of the source.
 _REFINE_MM = (12.0, 5.0, 2.5)
 #: The source is found from the dots of at least this many standard errors of their height
-#: (the clear ones) ...
+#: (the clear ones; at most about _SOURCE_DOTS per board, spread over it) ...
 _SOURCE_Z = 6.0
+_SOURCE_DOTS = 3000
 #: ... whose directions from it agree across boards within this many pixels' angle
 #: (mutual nearest neighbours) ...
 _TRACK_PX = 2.0
@@ -126,9 +127,9 @@ _CANDIDATE_MERGE_PX = 0.7
 _RAY_Z = 5.0
 _MERGE_SIGMAS = 1.0
 #: Rounds of the rays (each from the source the previous one refined).
-_RAY_ROUNDS = 2
+_RAY_ROUNDS = 1
 #: Rounds of the rays' joint fit on all boards.
-_JOINT_ROUNDS = 4
+_JOINT_ROUNDS = 3
 #: The step (pixels' angle) of the finite differences of where a ray meets a board.
 _JAC_PX = 0.5
 #: A board shows a ray's dot when its spot's height there reaches this many standard errors.
@@ -242,12 +243,11 @@ def _candidate_lines(X: list[F64], kappa: list[F64], eta: list[F64]) -> tuple[F6
         for b in range(a + 1, len(X)):
             if len(X[a]) == 0 or len(X[b]) == 0:
                 continue
-            ta = np.c_[kappa[a] / _PAIR_KAPPA, eta[a] / _PAIR_ETA]
+            ta = cKDTree(np.c_[kappa[a] / _PAIR_KAPPA, eta[a] / _PAIR_ETA])
             tb = cKDTree(np.c_[kappa[b] / _PAIR_KAPPA, eta[b] / _PAIR_ETA])
-            lists = tb.query_ball_point(ta, 1.0, p=np.inf)
-            n = np.fromiter((len(x) for x in lists), int, len(lists))
-            ia = np.repeat(np.arange(len(lists)), n)
-            ib = np.fromiter((j for x in lists for j in x), int, int(n.sum()))
+            pairs = ta.sparse_distance_matrix(tb, 1.0, p=np.inf, output_type="ndarray")
+            ia = pairs["i"].astype(np.intp)
+            ib = pairs["j"].astype(np.intp)
             d = X[b][ib] - X[a][ia]
             d /= np.linalg.norm(d, axis=1, keepdims=True)
             pts.append(X[a][ia])
@@ -767,6 +767,10 @@ def fit_dot_projector(
     f = float(math.sqrt(camera.fx * camera.fy))
     # the source, from the clear dots
     clear = [c.z >= _SOURCE_Z for c in cats]
+    for m in clear:  # the source needs a few thousand of them, spread over the board
+        idx = np.flatnonzero(m)
+        m[:] = False
+        m[idx[:: max(1, len(idx) // _SOURCE_DOTS)]] = True
     near = [v.lookup(c.u[m], c.v[m])[1] for v, c, m in zip(views, cats, clear, strict=True)]
     o = _source(
         [X[m] for X, m in zip(X_l, clear, strict=True)],
