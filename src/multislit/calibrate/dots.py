@@ -88,7 +88,7 @@ _AXIS_BIN = 4.0
 #: Tolerances (mm) of the lines kept in the successive least-squares refinements of the source.
 _REFINE_MM = (12.0, 5.0, 2.5)
 #: The source is found from the dots of at least this many standard errors of their height
-#: (the clear ones; at most about _SOURCE_DOTS per board, spread over it) ...
+#: (the clear ones; the _SOURCE_DOTS brightest of them per board) ...
 _SOURCE_Z = 6.0
 _SOURCE_DOTS = 3000
 #: ... whose directions from it agree across boards within this many pixels' angle
@@ -126,6 +126,9 @@ _CANDIDATE_MERGE_PX = 0.7
 #: together (:func:`_ray_evidence`); two rays within this many pixels' angle are one dot.
 _RAY_Z = 5.0
 _MERGE_SIGMAS = 1.0
+#: The source is refined over the lines of the candidates found on every board with at least
+#: this likelihood ratio (nats).
+_SOURCE_NATS = 8.0
 #: Rounds of the rays (each from the source the previous one refined).
 _RAY_ROUNDS = 1
 #: Rounds of the rays' joint fit on all boards.
@@ -767,10 +770,12 @@ def fit_dot_projector(
     f = float(math.sqrt(camera.fx * camera.fy))
     # the source, from the clear dots
     clear = [c.z >= _SOURCE_Z for c in cats]
-    for m in clear:  # the source needs a few thousand of them, spread over the board
+    for c, m in zip(cats, clear, strict=True):
+        # a few thousand of them do: the brightest, the same dots on every board
         idx = np.flatnonzero(m)
-        m[:] = False
-        m[idx[:: max(1, len(idx) // _SOURCE_DOTS)]] = True
+        if len(idx) > _SOURCE_DOTS:
+            m[:] = False
+            m[idx[np.argsort(-c.height[idx])[:_SOURCE_DOTS]]] = True
     near = [v.lookup(c.u[m], c.v[m])[1] for v, c, m in zip(views, cats, clear, strict=True)]
     o = _source(
         [X[m] for X, m in zip(X_l, clear, strict=True)],
@@ -922,21 +927,27 @@ def _ray_evidence(A: F64, se: F64, uv: F64, views: list[BoardView]) -> F64:
 
 
 def _refined_source(o: F64, rays: _Rays, X_l: list[F64]) -> tuple[F64, float]:
-    """The source refined over the lines of the rays seen on two or more boards (the point
-    closest to them, least squares), and the lines' RMS distance from it (mm)."""
+    """The source refined over the lines of the candidates found on every board with at
+    least :data:`_SOURCE_NATS` (the point closest to them, least squares, over the lines
+    within 12, 5 and 2.5 mm of it in turn: a chance match's line passes anywhere), and the
+    kept lines' RMS distance from it (mm)."""
     offs = np.cumsum([0] + [len(X) for X in X_l])
     X = np.concatenate(X_l)[offs[rays.board] + rays.index]
     n = len(rays.direction)
+    boards = sum(1 for x in X_l if len(x))
     cnt = np.bincount(rays.ray, minlength=n)
-    m = cnt[rays.ray] >= 2
-    if np.count_nonzero(cnt >= 2) < _MIN_TRACKS:
+    use = (cnt >= max(boards, 2)) & (rays.llr >= _SOURCE_NATS)
+    if np.count_nonzero(use) < _MIN_TRACKS:
         return o, float("nan")
-    keep = np.flatnonzero(cnt >= 2)
+    keep = np.flatnonzero(use)
     new = np.full(n, -1, np.intp)
     new[keep] = np.arange(keep.size)
+    m = use[rays.ray]
     mean_pt, line_d = _track_lines(X[m], new[rays.ray[m]], keep.size, o)
-    o2 = _closest_point(mean_pt, line_d)
-    dist = _line_distances(o2, mean_pt, line_d)
+    o2, near = _refine_source(o, mean_pt, line_d)
+    if near.sum() < _MIN_TRACKS:
+        return o, float("nan")
+    dist = _line_distances(o2, mean_pt[near], line_d[near])
     return o2, float(np.sqrt(np.mean(dist**2)))
 
 
