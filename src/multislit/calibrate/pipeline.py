@@ -713,12 +713,15 @@ def format_report(result: CalibrationResult) -> list[str]:
         lines.append("  " + row)
     d = r["dot_projector"]
     if d is not None:
+        by_seen = ", ".join(f"{n} on {k}" for k, n in sorted(d["rays_by_boards_seen"].items()))
         lines.append(
-            f"dot projector: {d['rays']} dots seen on two or more boards ("
+            f"dot projector: {d['rays']} rays ({by_seen} boards; "
             + "/".join(str(n) for n in d["dots_found_per_board"])
-            + f" found per board), their images {d['rms_px']:.3f} px RMS from their rays; "
+            + " seen per board, of "
+            + "/".join(str(n) for n in d["spots_per_board"])
+            + f" dots fitted), each board's dots {d['rms_px']:.3f} px RMS from their rays; "
             f"source at {', '.join(f'{x:.1f}' for x in d['source_mm'])} mm "
-            f"(its lines {d['source_rms_mm']:.2f} mm RMS from it)"
+            f"(the rays' lines {d['source_rms_mm']:.2f} mm RMS from it)"
         )
     if result.projector.projector is not None:
         lines.append(

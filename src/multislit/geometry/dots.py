@@ -78,6 +78,9 @@ class DotProjector:
     reference_depths : (R,) float64, mm, the depths (along the camera's optical axis, at the
         image centre) of the reference boards the rays were found on: the depths the model was
         calibrated over
+    brightness : (D,) float64, each dot's brightness: its dots' response (the image smoothed by
+        the dot's Gaussian less its mean along the stripe) divided by the peak of the stripe
+        nearest it, the median over the boards that show it (NaN: unknown)
     """
 
     source: F64
@@ -87,6 +90,7 @@ class DotProjector:
     seen: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, int))
     residual_px: F64 = field(default_factory=lambda: np.zeros(0))
     reference_depths: F64 = field(default_factory=lambda: np.zeros(0))
+    brightness: F64 = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         src = np.asarray(self.source, np.float64).reshape(-1)
@@ -117,6 +121,14 @@ class DotProjector:
         if not np.all(np.isfinite(depths) & (depths > 0)):
             raise CalibrationError("dot projector: reference_depths must be positive depths (mm)")
         object.__setattr__(self, "reference_depths", depths)
+        beta = np.asarray(self.brightness, np.float64).reshape(-1)
+        if beta.size == 0:
+            beta = np.full(phi.size, np.nan)
+        if beta.shape != phi.shape:
+            raise CalibrationError("dot projector: brightness needs one value per dot")
+        if np.any(np.isfinite(beta) & (beta <= 0)) or np.any(np.isinf(beta)):
+            raise CalibrationError("dot projector: brightness must be positive (or unknown)")
+        object.__setattr__(self, "brightness", beta)
 
     @property
     def num_dots(self) -> int:
@@ -151,6 +163,7 @@ class DotProjector:
             "seen": self.seen.tolist(),
             "residual_px": np.round(np.nan_to_num(self.residual_px, nan=-1.0), 4).tolist(),
             "reference_depths": self.reference_depths.tolist(),
+            "brightness": np.round(np.nan_to_num(self.brightness, nan=-1.0), 5).tolist(),
         }
 
     @classmethod
@@ -164,6 +177,7 @@ class DotProjector:
             raise CalibrationError(f"calibration JSON: dot_projector has no {', '.join(missing)}")
         try:
             res = np.asarray(d.get("residual_px", []), np.float64)
+            beta = np.asarray(d.get("brightness", []), np.float64)
             return cls(
                 source=np.asarray(d["source"], np.float64),
                 frame=np.asarray(d["frame"], np.float64),
@@ -172,6 +186,7 @@ class DotProjector:
                 seen=np.asarray(d.get("seen", []), int),
                 residual_px=np.where(res < 0, np.nan, res),
                 reference_depths=np.asarray(d.get("reference_depths", []), np.float64),
+                brightness=np.where(beta < 0, np.nan, beta),
             )
         except (TypeError, ValueError) as exc:
             if isinstance(exc, CalibrationError):

@@ -306,8 +306,13 @@ def _rig_args(rig: RigGeometry) -> tuple[tuple, tuple]:
 
 
 def _beta(rig: RigGeometry, frame: FrameDots) -> F64:
-    """(D,) each dot's response per unit of the stripe's peak beside it: the frame's."""
-    return np.full(rig.dots.num_dots, frame.beta)
+    """(D,) each dot's response per unit of the stripe's peak beside it: its own, calibrated
+    on the reference boards (:attr:`~multislit.geometry.dots.DotProjector.brightness`), else
+    the frame's (:attr:`FrameDots.beta`)."""
+    own = np.asarray(rig.dots.brightness, np.float64)
+    if own.shape != (rig.dots.num_dots,):
+        return np.full(rig.dots.num_dots, frame.beta)
+    return np.where(np.isfinite(own) & (own > 0), own, frame.beta)
 
 
 def window_stripes(extraction, order: NDArray[np.intp], start: NDArray[np.intp]) -> tuple[F64, F64]:
