@@ -229,6 +229,7 @@ def identify_geometry(
         label[lw],
         ev.slope[lw, label[lw]].astype(np.float64),
         lab.confidence[lw],
+        w_dir,
     )
     slit = np.full(k, -1, np.int64)
     conf = np.zeros(k)
