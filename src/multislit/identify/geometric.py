@@ -62,7 +62,11 @@ _CHAIN = 4.0
 _CHAIN_CHANGE = 1.5
 #: Rows left out on either side of a change of slit between two windows of a segment.
 _JUNCTION_ROWS = 8
-#: A segment is cut where lines fitted to this many points before and after a point put the
+#: A segment is cut where its brightness steps by this ratio (the medians of 6 points before and
+#: after): a cut links its pieces as a junction (:data:`_JUNCTION`), so a piece beyond it must
+#: stand on its own dots ...
+_STEP_CUT = 1.45
+#: ... and where lines fitted to this many points before and after a point put the
 #: stripe more than this many px apart (a step where two slits' stripes meet).
 _KINK_ROWS = 6
 _KINK_PX = 0.5
@@ -146,7 +150,9 @@ def identify_geometry(
     across = np.where(ex.by_column, ex.v, ex.u)
     # where a stripe runs into another surface's stripe the linking may join them; the
     # brightness steps there (another albedo or depth)
-    segment = split_at_brightness_steps(ex.segment.astype(np.int64), along, ex.peak)
+    segment = split_at_brightness_steps(
+        ex.segment.astype(np.int64), along, ex.peak, ratio=_STEP_CUT
+    )
     segment = split_at_kinks(segment, across, along, _KINK_ROWS, _KINK_PX)
     win = windows(segment, along, _WINDOW_ROWS)
     w_dir, w_peak = window_stripes(ex, win.order, win.start)
