@@ -15,6 +15,7 @@ Units: mm, target frame. Planes are (4,) ``[nx, ny, nz, d]`` with ``n . X + d = 
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +44,10 @@ _DEFAULT_SLIT_SPACING_MM = 20.0  # used when no row is seen by two neighbouring 
 
 
 # --------------------------------------------------------------------------- scans
+#: A measurement's summary lists at most this many holes; the rest are counted by reason.
+_SUMMARY_HOLES = 8
+
+
 @dataclass(frozen=True, eq=False, repr=False)
 class HoleMeasurement(Summarised):
     """Holes measured in one scan.
@@ -80,13 +85,24 @@ class HoleMeasurement(Summarised):
         return [h for h in self.holes if h.measurable]
 
     def summary(self) -> str:
-        """The plate and a line per hole (what ``print`` shows)."""
+        """The plate and a line per hole, the measurable ones first (what ``print`` shows);
+        beyond :data:`_SUMMARY_HOLES` lines the rest, all not measurable, are counted by
+        reason."""
         name = self.scan.name if self.scan is not None and self.scan.name else "scan"
         lines = [
             f"{name}: plate plane RMS {self.plane_rms:.3f} mm, {len(self.edges)} edge points "
             f"({self.method}), {len(self.measurable)} measurable hole(s) of {len(self.holes)}"
         ]
-        lines += [f"  hole {i}: {h.summary()}" for i, h in enumerate(self.holes, 1)]
+        order = sorted(range(len(self.holes)), key=lambda i: not self.holes[i].measurable)
+        shown = order[:_SUMMARY_HOLES] if len(order) > _SUMMARY_HOLES + 1 else order
+        lines += [f"  hole {i + 1}: {self.holes[i].summary()}" for i in shown]
+        rest = [self.holes[i] for i in order[len(shown) :]]
+        if rest:
+            why = Counter(h.reason.split(", need")[0] for h in rest)
+            lines.append(
+                f"  {len(rest)} more, not measurable: "
+                + "; ".join(f"{n} {r}" for r, n in why.most_common())
+            )
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
