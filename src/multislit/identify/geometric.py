@@ -216,9 +216,14 @@ def identify_geometry(
         (lab.slit >= 0) & (lab.confidence >= options.confidence) & (lab.support >= _MIN_SUPPORT)
     )
     label = np.where(accepted, lab.slit, -1)
-    # the pieces: runs of windows of one segment with one label
-    new = np.r_[True, (win.segment[1:] != win.segment[:-1]) | (label[1:] != label[:-1])]
-    piece_of_window = np.cumsum(new) - 1
+    # the pieces: runs of windows of one linked segment, along it, with one label (across a
+    # cut whose two sides carry one slit too)
+    head = win.order[win.start[:-1]]
+    linked = ex.segment[head]
+    o = np.lexsort((along[head], linked))
+    new = np.r_[True, (linked[o][1:] != linked[o][:-1]) | (label[o][1:] != label[o][:-1])]
+    piece_of_window = np.empty(nw, np.int64)
+    piece_of_window[o] = np.cumsum(new) - 1
     piece = np.full(k, -1, np.int64)
     piece[window >= 0] = piece_of_window[window[window >= 0]]
     pieces, dropped = _piece_labels(
