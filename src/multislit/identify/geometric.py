@@ -189,7 +189,7 @@ def identify_geometry(
     lr = np.log(gp.spacing_ratio) / math.log(_SPACING_TOLERANCE)
     regular = np.where(np.isfinite(lr), np.exp(-0.5 * lr**2), 1.0)
 
-    def labelling(factors=None):
+    def labelling(factors=None, ties=vouch):
         return label_pieces(
             scores,
             gp.a,
@@ -205,11 +205,12 @@ def identify_geometry(
             gap_pair=win.segment[gp.a] * (int(win.segment.max()) + 1) + win.segment[gp.b],
             repeat_penalty=_REPEAT_PENALTY,
             split_penalty=_SPLIT,
-            cont_ties=vouch,
+            cont_ties=ties,
             factors=factors,
         )
 
-    lab = labelling()
+    # a first labelling, for where the confident stripes are (their shadows' gaps)
+    lab = labelling(ties=None)
     sure = (lab.slit >= 0) & (lab.confidence >= options.confidence) & (lab.support >= _MIN_SUPPORT)
     lab = labelling(shadow_factors(ev.span, lab.slit, sure))
     accepted = (
