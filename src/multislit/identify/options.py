@@ -41,9 +41,8 @@ class IdentifyOptions:
         where it is the margin of the dots' vote).
     depth_range : (near, far) or None
         mm, the camera depths (along its optical axis) a measured surface may have: slits that
-        put a piece outside are ruled out (geometry only). None: 0.8 times the nearest and 1.2
-        times the farthest reference board's depth (the depths the dot projector was calibrated
-        over and a fifth beyond them).
+        put a piece outside are ruled out (geometry only). None: 0.7 times the nearest and 1.35
+        times the farthest reference board's depth.
 
     Raises
     ------

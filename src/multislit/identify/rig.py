@@ -24,9 +24,10 @@ from multislit.geometry.dots import DotProjector
 
 #: The measuring volume's default depths, as fractions of the nearest and the farthest
 #: reference board's depth (camera axis): a slit hypothesis putting a piece outside is ruled out.
-#: The dot projector's rays were fitted over the boards' depths; a fifth beyond them either way
-#: keeps the hypotheses a surface can have there.
-DEFAULT_VOLUME = (0.8, 1.2)
+#: The dot projector's rays were fitted over the boards' depths; the volume reaches a third
+#: beyond them (a backdrop behind the objects), not more: every slit a volume admits is one more
+#: hypothesis for every stripe piece.
+DEFAULT_VOLUME = (0.7, 1.35)
 
 
 @dataclass(frozen=True, eq=False)
