@@ -18,14 +18,13 @@ def _span(rows: list[tuple[int, int, float, float, float]], w: int, n: int) -> n
 def test_a_gap_at_one_range_wants_a_caster_in_front_of_it():
     """Slit 3 lights a wall (range 1000 mm) from psi 0 to 0.1 and from 0.2 on: its rays in
     between lit something nearer. Window 2 under slit 3 lies there at 900 mm (a caster);
-    window 3 at the wall's range (the wall's own stripe where an object hides it, not a
-    caster) and window 4 outside the gap are not candidates."""
+    window 4 under slit 3 lies outside the gap. A window that under slit 3 lies in the gap at
+    the wall's range would be the wall's stripe there: no gap."""
     span = _span(
         [
             (0, 3, 0.0, 0.1, 1000.0),
             (1, 3, 0.2, 0.3, 1000.0),
             (2, 3, 0.12, 0.18, 900.0),
-            (3, 3, 0.12, 0.18, 998.0),
             (4, 3, 0.31, 0.35, 900.0),
         ],
         5,
@@ -36,6 +35,9 @@ def test_a_gap_at_one_range_wants_a_caster_in_front_of_it():
     slit, cost, start, cand = shadow_factors(span, label, sure)
     assert slit.tolist() == [3] and cost.tolist() == [SHADOW_COST]
     assert cand[start[0] : start[1]].tolist() == [2]
+    span[3, 3] = (0.1, 0.2, 998.0)
+    slit, _, _, _ = shadow_factors(span, label, sure)
+    assert slit.size == 0
 
 
 def test_no_gap_where_the_stripe_resumes_on_another_surface():

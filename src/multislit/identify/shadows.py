@@ -20,6 +20,7 @@ Units: rad (angles from the dot source), mm (ranges), nats.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
@@ -43,7 +44,9 @@ def shadow_factors(
 
     A gap of slit k is a stretch of angles along the slits where slit k does not light the
     surface its stripe lies on: where its stripe breaks off and resumes at one range, or
-    where the stripes of slits k - 1 and k + 1 both run on at one range without it.
+    where the stripes of slits k - 1 and k + 1 both run on at one range without it, and no
+    stripe lies there at that range under slit k (a stripe that is there but not yet labelled
+    is no gap). The angles are taken in bins of a quarter of the least gap.
 
     Parameters
     ----------
@@ -58,97 +61,119 @@ def shadow_factors(
     candidate windows are ``candidates[start[f]:start[f+1]]``
     """
     w, n, _ = span.shape
-    lo, hi, rng = (span[..., i].astype(np.float64) for i in range(3))
-    cover = []
+    sp = np.ascontiguousarray(span, np.float64)
+    ok = np.isfinite(sp[..., 0])
+    if w == 0 or not ok.any():
+        e = np.zeros(0, np.int64)
+        return e, np.zeros(0), np.zeros(1, np.int64), e.copy()
+    lo0 = float(np.min(sp[..., 0][ok]))
+    binw = 0.25 * _MIN_GAP
+    nb = int((float(np.max(sp[..., 1][ok])) - lo0) / binw) + 2
+    f_slit = np.zeros(4 * n + 4, np.int64)
+    f_start = np.zeros(4 * n + 5, np.int64)
+    f_cand = np.zeros(max(1, w * 8), np.int64)
+    nf = _gap_kernel(
+        sp,
+        np.ascontiguousarray(label, np.int64),
+        np.ascontiguousarray(confident, np.bool_),
+        lo0,
+        binw,
+        nb,
+        _MIN_GAP,
+        _SAME_SURFACE,
+        _NEARER,
+        f_slit,
+        f_start,
+        f_cand,
+    )
+    cand = f_cand[: f_start[nf]].copy()
+    return f_slit[:nf].copy(), np.full(nf, SHADOW_COST), f_start[: nf + 1].copy(), cand
+
+
+@njit(cache=True)
+def _paint(cover, lo, hi, r, lo0, binw):
+    """``cover`` (B,) keeps the least range ``r`` over the bins of ``lo`` .. ``hi``."""
+    b0 = int((lo - lo0) / binw)
+    b1 = int((hi - lo0) / binw)
+    for b in range(max(b0, 0), min(b1, len(cover) - 1) + 1):
+        if not cover[b] <= r:  # (also NaN)
+            cover[b] = r
+
+
+@njit(cache=True)
+def _gap_kernel(span, label, confident, lo0, binw, nb, min_gap, same, nearer, f_slit, f_start,
+                f_cand):  # fmt: skip
+    """:func:`shadow_factors`' gaps and candidates; returns how many factors were written."""
+    w, n, _ = span.shape
+    cover = np.full((n, nb), np.nan)
+    for i in range(w):
+        k = label[i]
+        if confident[i] and k >= 0 and np.isfinite(span[i, k, 0]):
+            _paint(cover[k], span[i, k, 0], span[i, k, 1], span[i, k, 2], lo0, binw)
+    surf = np.empty(nb)
+    present = np.zeros(nb, np.bool_)
+    nf = 0
+    nc = 0
     for k in range(n):
-        src = np.flatnonzero(confident & (label == k) & np.isfinite(lo[:, k]))
-        src = src[np.argsort(lo[src, k])]
-        cover.append((lo[src, k], hi[src, k], rng[src, k]))
-    f_slit, f_cost, f_cand = [], [], []
-    for k in range(n):
-        cand = np.flatnonzero(np.isfinite(lo[:, k]))
-        ca, cb, cr = lo[cand, k], hi[cand, k], rng[cand, k]
-        gaps = _breaks(*cover[k])
+        surf[:] = np.nan
+        # where its own stripe breaks off and resumes at one range
+        last = -1
+        for b in range(nb):
+            if np.isfinite(cover[k, b]):
+                if last >= 0 and b - last > 1:
+                    r0, r1 = cover[k, last], cover[k, b]
+                    if abs(r1 - r0) <= same * max(r0, r1):
+                        for g in range(last + 1, b):
+                            surf[g] = min(r0, r1)
+                last = b
+        # where the stripes on either side run on at one range
         if 0 < k < n - 1:
-            # missing where no stripe lies at that place under slit k (a stripe that is there
-            # but not yet labelled is no gap)
-            gaps += _missing(cover[k - 1], cover[k + 1], (ca, cb, cr))
-        if not gaps:
-            continue
-        for g0, g1, r in _merged(gaps):
-            inside = (cb > g0) & (ca < g1) & (cr < (1.0 - _NEARER) * r)
-            if inside.any():
-                f_slit.append(k)
-                f_cost.append(SHADOW_COST)
-                f_cand.append(cand[inside])
-    start = np.r_[0, np.cumsum([len(c) for c in f_cand])].astype(np.int64)
-    cands = np.concatenate(f_cand).astype(np.int64) if f_cand else np.zeros(0, np.int64)
-    return np.asarray(f_slit, np.int64), np.asarray(f_cost, np.float64), start, cands
-
-
-def _breaks(a: F64, b: F64, r: F64) -> list[tuple[float, float, float]]:
-    """Where a stripe's cover (intervals ``a``..``b`` sorted by ``a``, ranges ``r``) breaks off
-    and resumes at one range: (start, end, range) each."""
-    out = []
-    if len(a) < 2:
-        return out
-    reach = np.maximum.accumulate(b)
-    last = np.maximum.accumulate(np.where(b == reach, np.arange(len(b)), 0))
-    for i in range(len(a) - 1):
-        g0, g1 = reach[i], a[i + 1]
-        r0, r1 = r[last[i]], r[i + 1]
-        if g1 - g0 >= _MIN_GAP and abs(r1 - r0) <= _SAME_SURFACE * max(r0, r1):
-            out.append((float(g0), float(g1), float(min(r0, r1))))
-    return out
-
-
-def _missing(left: tuple, right: tuple, here: tuple) -> list[tuple[float, float, float]]:
-    """Where the stripes on either side (covers ``left`` and ``right``: intervals and ranges)
-    both run at one range and no stripe lies between them at that range (``here``: every
-    window's interval and range under the slit between): (start, end, range) each."""
-    out = []
-    la, lb, lr = left
-    ra, rb, rr = right
-    ha, hb_, hr = here
-    for i in range(len(la)):
-        # the right stripe's intervals that overlap this one at one range
-        ov = (ra < lb[i]) & (rb > la[i]) & (np.abs(rr - lr[i]) <= _SAME_SURFACE * lr[i])
-        for j in np.flatnonzero(ov):
-            s0, s1 = max(la[i], ra[j]), min(lb[i], rb[j])
-            r = 0.5 * (lr[i] + rr[j])
-            at = (np.abs(hr - r) <= _SAME_SURFACE * r) & (hb_ > s0) & (ha < s1)
-            o = np.argsort(ha[at])
-            for g0, g1 in _less(s0, s1, ha[at][o], hb_[at][o]):
-                if g1 - g0 >= _MIN_GAP:
-                    out.append((g0, g1, float(r)))
-    return out
-
-
-def _less(s0: float, s1: float, a: F64, b: F64) -> list[tuple[float, float]]:
-    """The interval ``s0``..``s1`` less the intervals ``a``..``b`` (sorted by ``a``)."""
-    out = []
-    cur = s0
-    for x0, x1 in zip(a.tolist(), b.tolist(), strict=True):
-        if x1 <= cur or x0 >= s1:
-            continue
-        if x0 > cur:
-            out.append((cur, min(x0, s1)))
-        cur = max(cur, x1)
-        if cur >= s1:
-            break
-    if cur < s1:
-        out.append((cur, s1))
-    return out
-
-
-def _merged(gaps: list[tuple[float, float, float]]) -> list[tuple[float, float, float]]:
-    """Overlapping gaps (start, end, range) merged, the nearer range kept."""
-    gaps = sorted(gaps)
-    out = [list(gaps[0])]
-    for g0, g1, r in gaps[1:]:
-        if g0 <= out[-1][1]:
-            out[-1][1] = max(out[-1][1], g1)
-            out[-1][2] = min(out[-1][2], r)
-        else:
-            out.append([g0, g1, r])
-    return [tuple(x) for x in out]
+            for b in range(nb):
+                r0, r1 = cover[k - 1, b], cover[k + 1, b]
+                if np.isfinite(r0) and np.isfinite(r1) and not np.isfinite(cover[k, b]):
+                    if abs(r1 - r0) <= same * max(r0, r1):
+                        r = 0.5 * (r0 + r1)
+                        if not surf[b] <= r:
+                            surf[b] = r
+        # less where a stripe lies at that range under slit k
+        present[:] = False
+        for i in range(w):
+            if not np.isfinite(span[i, k, 0]):
+                continue
+            b0 = max(int((span[i, k, 0] - lo0) / binw), 0)
+            b1 = min(int((span[i, k, 1] - lo0) / binw), nb - 1)
+            r = span[i, k, 2]
+            for b in range(b0, b1 + 1):
+                if np.isfinite(surf[b]) and abs(r - surf[b]) <= same * surf[b]:
+                    present[b] = True
+        b = 0
+        while b < nb:
+            if not (np.isfinite(surf[b]) and not present[b]):
+                b += 1
+                continue
+            e = b
+            rmin = surf[b]
+            while e + 1 < nb and np.isfinite(surf[e + 1]) and not present[e + 1]:
+                e += 1
+                rmin = min(rmin, surf[e])
+            g0 = lo0 + b * binw
+            g1 = lo0 + (e + 1) * binw
+            b = e + 1
+            if g1 - g0 < min_gap or nf >= len(f_slit):
+                continue
+            start = nc
+            for i in range(w):
+                if (
+                    np.isfinite(span[i, k, 0])
+                    and span[i, k, 1] > g0
+                    and span[i, k, 0] < g1
+                    and span[i, k, 2] < (1.0 - nearer) * rmin
+                    and nc < len(f_cand)
+                ):
+                    f_cand[nc] = i
+                    nc += 1
+            if nc > start:
+                f_slit[nf] = k
+                f_start[nf + 1] = nc
+                nf += 1
+    return nf
