@@ -64,7 +64,6 @@ from multislit.calibrate.board_dots import (
     Board,
     BoardDots,
     BoardView,
-    SharpBoard,
     fit_rays_on_boards,
     read_board,
 )
@@ -74,6 +73,7 @@ from multislit.errors import CalibrationError
 from multislit.geometry import PinholeCamera, intersect_rays_planes, orthonormal_basis
 from multislit.geometry.camera import F64
 from multislit.geometry.dots import DotProjector, angles_of, dot_frame
+from multislit.stripes.dots import SharpResponse
 
 #: Pairs of dots of two boards are candidates when their slit coordinates differ by at most
 #: this many slit spacings ...
@@ -437,7 +437,7 @@ def _make_rays(
     cats: list[BoardDots],
     X_l: list[F64],
     views: list[BoardView],
-    sharps: list[SharpBoard],
+    sharps: list[SharpResponse],
     board_planes: F64,
     camera: PinholeCamera,
     frame: F64,
@@ -824,7 +824,10 @@ def fit_dot_projector(
     beta = _brightness(uv, seen_b, views)
     frame = dot_frame(d, axis)
     phi, psi, _ = angles_of(d, frame)
-    proj = DotProjector(o, frame, phi, psi, np.maximum(seen, 1), res, brightness=beta)
+    sigma = float(np.median([sb.profile_sigma for sb in sharps]))
+    proj = DotProjector(
+        o, frame, phi, psi, np.maximum(seen, 1), res, brightness=beta, spot_sigma_px=sigma
+    )
     found = np.zeros(len(board_planes), int)
     found[keep_b] = seen_b.sum(axis=0)
     spots = np.zeros(len(board_planes), int)
@@ -869,7 +872,7 @@ def _joint_fit(
     o: F64,
     rays: _Rays,
     cats: list[BoardDots],
-    sharps: list[SharpBoard],
+    sharps: list[SharpResponse],
     planes: F64,
     camera: PinholeCamera,
     f: float,
@@ -877,7 +880,7 @@ def _joint_fit(
     """The rays refined on all boards at once (:func:`fit_rays_on_boards`, a few rounds), the
     board's other dots (those of no ray) held as fixed spots: each ray's direction (N, 3),
     its spot's height on each board (N, R) with its standard error (the noise's spread
-    :attr:`~multislit.calibrate.board_dots.SharpBoard.z_scale` included; 0: unknown), and
+    :attr:`~multislit.stripes.dots.SharpResponse.z_scale` included; 0: unknown), and
     where it meets each board (N, R, 2) px (NaN: off the image)."""
     R = len(cats)
     shape = sharps[0].response.shape

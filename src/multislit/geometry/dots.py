@@ -16,6 +16,7 @@ Units: mm in the world (target) frame, rad.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -81,6 +82,9 @@ class DotProjector:
     brightness : (D,) float64, each dot's brightness: its dots' response (the image smoothed by
         the dot's Gaussian less its mean along the stripe) divided by the peak of the stripe
         nearest it, the median over the boards that show it (NaN: unknown)
+    spot_sigma_px : px, the sigma of the Gaussian spot the boards' dots were fitted as on their
+        sharp response (:func:`~multislit.stripes.dots.fit_dot_spots`), the median over the
+        boards: a scan centres its dots with it (NaN: unknown)
     """
 
     source: F64
@@ -91,6 +95,7 @@ class DotProjector:
     residual_px: F64 = field(default_factory=lambda: np.zeros(0))
     reference_depths: F64 = field(default_factory=lambda: np.zeros(0))
     brightness: F64 = field(default_factory=lambda: np.zeros(0))
+    spot_sigma_px: float = float("nan")
 
     def __post_init__(self) -> None:
         src = np.asarray(self.source, np.float64).reshape(-1)
@@ -129,6 +134,10 @@ class DotProjector:
         if np.any(np.isfinite(beta) & (beta <= 0)) or np.any(np.isinf(beta)):
             raise CalibrationError("dot projector: brightness must be positive (or unknown)")
         object.__setattr__(self, "brightness", beta)
+        sg = float(self.spot_sigma_px)
+        if not (math.isnan(sg) or (math.isfinite(sg) and sg > 0)):
+            raise CalibrationError("dot projector: spot_sigma_px must be positive (or unknown)")
+        object.__setattr__(self, "spot_sigma_px", sg)
 
     @property
     def num_dots(self) -> int:
@@ -164,6 +173,7 @@ class DotProjector:
             "residual_px": np.round(np.nan_to_num(self.residual_px, nan=-1.0), 4).tolist(),
             "reference_depths": self.reference_depths.tolist(),
             "brightness": np.round(np.nan_to_num(self.brightness, nan=-1.0), 5).tolist(),
+            "spot_sigma_px": round(self.spot_sigma_px, 6) if self.spot_sigma_px > 0 else -1.0,
         }
 
     @classmethod
@@ -178,6 +188,7 @@ class DotProjector:
         try:
             res = np.asarray(d.get("residual_px", []), np.float64)
             beta = np.asarray(d.get("brightness", []), np.float64)
+            sg = float(d.get("spot_sigma_px", -1.0))
             return cls(
                 source=np.asarray(d["source"], np.float64),
                 frame=np.asarray(d["frame"], np.float64),
@@ -187,6 +198,7 @@ class DotProjector:
                 residual_px=np.where(res < 0, np.nan, res),
                 reference_depths=np.asarray(d.get("reference_depths", []), np.float64),
                 brightness=np.where(beta < 0, np.nan, beta),
+                spot_sigma_px=sg if sg > 0 else float("nan"),
             )
         except (TypeError, ValueError) as exc:
             if isinstance(exc, CalibrationError):
