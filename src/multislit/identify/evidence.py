@@ -1072,9 +1072,8 @@ def dot_matches(
     """The observed dots the labelled windows' predictions found: each predicted dot of a
     window (under its slit and at its best slope on each side) paired with the observed dot
     nearest its place within :data:`MATCH_TOL_PX`; an observed dot that two predictions
-    found is left out (ambiguous). Each paired dot is centred on the dots' response (the
-    vertex of the parabolas through its 3 x 3 pixels along each axis: the response cancels the
-    stripe beside it, where the dot image's refill can bias a centre).
+    found is left out (ambiguous). The paired dots keep the centres they were found at; a scan
+    that measures them centres them as spots (:func:`~multislit.stripes.dots.centre_dots`).
 
     Parameters
     ----------
@@ -1128,33 +1127,6 @@ def dot_matches(
     slit[np.asarray(windows, np.intp)] = labels
     conf = np.zeros(len(slit))
     conf[np.asarray(windows, np.intp)] = confidence
-    u, v = _centred(frame.response, frame.dots.u[obs], frame.dots.v[obs], direction[win])
-    return DotMatches(u, v, dot, win, slit[win], conf[win])
-
-
-def _centred(response: DotResponse, u: F64, v: F64, angle: F64) -> tuple[F64, F64]:
-    """Dots at (u, v) px (M,) centred on the dots' response (along the stripe directions
-    ``angle`` (M,) rad): the vertex of the parabola through the response at their nearest
-    pixel and its two neighbours, along each axis; the given centre where the response does
-    not peak there."""
-    iu, iv = np.rint(u), np.rint(v)
-    off = np.array([-1.0, 0.0, 1.0])
-    shape = (len(u), 3, 3)
-    r, _ = response.at(
-        np.broadcast_to(iu[:, None, None] + off[None, None, :], shape).ravel(),
-        np.broadcast_to(iv[:, None, None] + off[None, :, None], shape).ravel(),
-        np.repeat(angle, 9),
+    return DotMatches(
+        frame.dots.u[obs], frame.dots.v[obs], dot, win, slit[win], conf[win], direction[win]
     )
-    r = r.reshape(-1, 3, 3)  # (dot, row, column)
-    out = []
-    for a, b, c, base in (
-        (r[:, 1, 0], r[:, 1, 1], r[:, 1, 2], iu),
-        (r[:, 0, 1], r[:, 1, 1], r[:, 2, 1], iv),
-    ):
-        den = a - 2.0 * b + c
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = 0.5 * (a - c) / den
-        ok = (den < 0) & np.isfinite(d) & (np.abs(d) <= 0.5)
-        out.append(np.where(ok, base + np.where(ok, d, 0.0), np.nan))
-    keep = np.isfinite(out[0]) & np.isfinite(out[1])
-    return np.where(keep, out[0], u), np.where(keep, out[1], v)

@@ -24,11 +24,13 @@ class DotMatches:
 
     Attributes
     ----------
-    u, v : (M,) float64, px, the observed dots' centres
+    u, v : (M,) float64, px, the observed dots' centres (as found:
+        :func:`~multislit.stripes.find_dots`)
     dot : (M,) int64, the ray (index into the DotProjector's dots) of each
     window : (M,) int64, the window whose slit and slope predicted it
     slit : (M,) int64, that window's slit
     confidence : (M,) float64, that window's confidence
+    angle : (M,) float64, rad, that window's stripe direction (from the image's vertical)
     """
 
     u: F64
@@ -37,6 +39,7 @@ class DotMatches:
     window: NDArray[np.int64]
     slit: NDArray[np.int64]
     confidence: F64
+    angle: F64
 
     def __len__(self) -> int:
         return len(self.u)

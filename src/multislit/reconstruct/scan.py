@@ -37,6 +37,7 @@ from multislit.io.paths import as_path
 from multislit.reconstruct.options import ScanOptions, as_scan_options
 from multislit.reconstruct.triangulation import triangulate
 from multislit.stripes import as_image, extract_slits, refine_centres, resolve_channel
+from multislit.stripes.dots import centre_dots
 from multislit.summaries import Summarised
 
 F64 = NDArray[np.float64]
@@ -92,16 +93,21 @@ class DotPoints:
 
 
 def measure_dots(ident: Identification, calibration: Calibration, rig: RigGeometry) -> DotPoints:
-    """The 3D points of the dots an identification by the dots' geometry identified: the
-    midpoint of the shortest segment between each dot's line of sight and its ray (a dot whose
-    two lines pass farther apart than :data:`_MAX_RAY_GAP_PX` px's width at its range is left
-    out: a wrong pairing)."""
+    """The 3D points of the dots an identification by the dots' geometry identified.
+
+    Each dot is first centred as the calibration centres the reference boards' dots: a spot
+    on the image's sharp response, fitted beside the spots around it
+    (:func:`~multislit.stripes.dots.centre_dots`); a dot without a spot of its own keeps the
+    centre it was found at. Its 3D point is the midpoint of the shortest segment between its
+    line of sight and its ray (a dot whose two lines pass farther apart than
+    :data:`_MAX_RAY_GAP_PX` px's width at its range is left out: a wrong pairing)."""
     d = ident.dots
     if d is None or len(d) == 0:
         e = np.zeros(0)
         return DotPoints(np.zeros((0, 3)), e, e.copy(), np.zeros(0, np.int64), e.copy(), e.copy())
+    u, v = _centred_dots(ident, rig.dots.spot_sigma_px)
     cam = calibration.camera
-    o, r = cam.rays(np.stack([d.u, d.v], axis=1))
+    o, r = cam.rays(np.stack([u, v], axis=1))
     src = rig.dots.source
     dd = rig.dots.directions[d.dot]
     w0 = o - src
@@ -116,7 +122,19 @@ def measure_dots(ident: Identification, calibration: Calibration, rig: RigGeomet
     gap = np.linalg.norm(p1 - p2, axis=1)
     f = float(np.sqrt(rig.camera.fx * rig.camera.fy))
     ok = (s1 > 0) & (gap <= _MAX_RAY_GAP_PX * s1 / f)
-    return DotPoints(0.5 * (p1 + p2)[ok], d.u[ok], d.v[ok], d.slit[ok], d.confidence[ok], gap[ok])
+    return DotPoints(0.5 * (p1 + p2)[ok], u[ok], v[ok], d.slit[ok], d.confidence[ok], gap[ok])
+
+
+def _centred_dots(ident: Identification, spot_sigma_px: float) -> tuple[F64, F64]:
+    """(M,) px each: the identified dots (``ident.dots``) centred as spots of ``spot_sigma_px``
+    px (NaN: fitted on the frame) on the extraction's sharp response
+    (:func:`~multislit.stripes.dots.centre_dots`; the centres they were found at without an
+    extraction)."""
+    d = ident.dots
+    if ident.extraction is None:
+        return d.u, d.v
+    u, v, _ = centre_dots(ident.extraction, d.u, d.v, d.angle, spot_sigma_px)
+    return u, v
 
 
 @dataclass(frozen=True, eq=False, repr=False)
