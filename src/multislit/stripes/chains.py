@@ -167,6 +167,11 @@ def _chains(key, us, lean, span, max_du, max_g):
 WEAK_LENGTH_FACTOR = 3
 
 
+#: A weak centre between strong ones whose peak is below this fraction of theirs is no part of
+#: their stripe (:func:`settle_weak`).
+WEAK_GAP_FRACTION = 0.4
+
+
 def drop_short(segment: I64, min_length: int) -> I64:
     """``segment`` (K,) int64 with -1 for the segments of fewer than ``min_length`` points."""
     lk = segment >= 0
@@ -182,6 +187,7 @@ def settle_weak(
     strong: NDArray[np.bool_],
     min_length: int,
     weak_length: int | None = None,
+    peak: NDArray[np.float64] | None = None,
 ) -> I64:
     """The segments of linked centres some of which are weak (found by the ridge response
     alone, :func:`~multislit.stripes.centres.find_ridge_centres_validated`).
@@ -190,7 +196,11 @@ def settle_weak(
     dropped where they are fewer than ``weak_length`` (weak
     centres between strong ones stay: the stripe runs on across them); a segment without a
     strong centre is dropped where it is that short. The segments left with fewer than
-    ``min_length`` points are dropped too.
+    ``min_length`` points are dropped too. With ``peak``, a weak centre is dropped where its
+    peak is below :data:`WEAK_GAP_FRACTION` times that of the strong ones next to it in its
+    segment (the lower of the two between strong ones): there the stripe is gone (a shadow, a
+    gap between two surfaces, its end), and the response's smoothing along the stripe
+    reaches on.
 
     Parameters
     ----------
@@ -200,6 +210,7 @@ def settle_weak(
     strong : (K,) bool
     min_length : int
     weak_length : int, default :data:`WEAK_LENGTH_FACTOR` times ``min_length``
+    peak : (K,) float64, the centres' peaks (intensity units), or None
 
     Returns
     -------
@@ -225,6 +236,18 @@ def settle_weak(
     k = np.repeat(np.arange(lo.size), n)
     drop = (cut_lead[k] & (pos < first[k])) | (cut_trail[k] & (pos > last[k]))
     drop |= ~has[k] & (n[k] < weak_length)
+    if peak is not None:
+        p = np.asarray(peak, np.float64)[order]
+        # the strong centres before and after each point in its segment
+        before = np.maximum.accumulate(np.where(st, pos, -1))
+        after = np.minimum.accumulate(np.where(st, pos, order.size)[::-1])[::-1]
+        b_in, a_in = before >= lo[k], after < hi[k]
+        pb = np.where(b_in, p[np.maximum(before, 0)], np.inf)
+        pa = np.where(a_in, p[np.minimum(after, order.size - 1)], np.inf)
+        # between strong centres the lower of the two; beyond the last (or before the first)
+        # strong one, that one's
+        flank = np.minimum(pb, pa)
+        drop |= ~st & (b_in | a_in) & (p < WEAK_GAP_FRACTION * flank)
     out = segment.copy()
     out[order[drop]] = -1
     return drop_short(out, min_length)
@@ -235,19 +258,22 @@ def link_weak(
     v: NDArray[np.float64],
     strong: NDArray[np.bool_],
     slope: NDArray[np.float64] | None,
+    peak: NDArray[np.float64] | None,
     max_du: float,
     max_gap: int,
     min_length: int,
 ) -> I64:
     """:func:`link_segments` (along the stripes' ``slope``) of centres some of which are
-    weak, settled by :func:`settle_weak`; with every centre strong, :func:`link_segments`
-    itself.
+    weak, settled by :func:`settle_weak`; where that drops weak centres next to strong ones,
+    the rest is linked and settled again (the stripe is cut there). With every centre strong,
+    :func:`link_segments` itself.
 
     Parameters
     ----------
     u, v : (K,) float64, px, the centres (v whole rows)
     strong : (K,) bool
     slope : (K,) float64, px per row, the stripes' lean at the centres, or None (upright)
+    peak : (K,) float64, the centres' peaks (intensity units), or None
     max_du, max_gap, min_length : see :func:`link_segments`
 
     Returns
@@ -256,5 +282,15 @@ def link_weak(
     """
     if strong.all():
         return link_segments(u, v, max_du, max_gap, min_length, slope)
+    vv = np.asarray(v, np.float64)
     seg = link_segments(u, v, max_du, max_gap, 1, slope)
-    return settle_weak(np.asarray(v, np.float64), seg, strong, min_length)
+    settled = settle_weak(vv, seg, strong, min_length, peak=peak)
+    cut = (seg >= 0) & (settled < 0) & ~strong
+    if peak is None or not cut.any():
+        return settled
+    keep = ~cut
+    sl = None if slope is None else np.asarray(slope)[keep]
+    again = link_segments(np.asarray(u)[keep], vv[keep], max_du, max_gap, 1, sl)
+    out = np.full(vv.size, -1, np.int64)
+    out[keep] = settle_weak(vv[keep], again, strong[keep], min_length)
+    return out

@@ -249,7 +249,9 @@ def extract_slits(
         bg = background_validated(img, sw, background)
         # dots from the same optics: fall back to the stripe
         ds = estimate_dot_size(cv2.subtract(img, bg)) or sw
-    hp, slits, sat, noise = separate_validated(img, sw, ds, saturation_level, background, bg)
+    hp, slits, sat, noise = separate_validated(
+        img, sw, ds, saturation_level, background, bg, keep_ends=not reject_texture
+    )
     dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(
         np.float32, copy=False
     )
@@ -270,7 +272,7 @@ def extract_slits(
         centres = StripeCentres(*(a[keep] for a in centres))
         strong, slope = strong[keep], slope[keep]
     link = {"max_du": max_du, "max_gap": max_gap, "min_length": min_length}
-    segment = link_weak(centres.u, centres.v, strong, slope, **link)
+    segment = link_weak(centres.u, centres.v, strong, slope, centres.peak, **link)
     # a laser line continues over rows (the photo mode); a weak centre counts in a segment only
     linked = segment >= 0 if reject_texture else (segment >= 0) | strong
     if not linked.all():

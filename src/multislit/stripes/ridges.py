@@ -28,8 +28,8 @@ stripe integrated along its lean, such stripes being dim); they are linked colum
 along the stripes' lean (``link_segments(v, u, slope=...)``), the pieces that continue one
 another along the stripe are joined (:func:`join_collinear`), and the segments are kept that
 are at least :data:`MIN_LENGTH_FACTOR` times as long as the row pass's, that a single pixel
-shows above the threshold somewhere (:func:`strong_segments`) and that do not run through the
-row pass's stripes (:func:`crossing_segments`).
+shows above the threshold somewhere (:func:`strong_segments`) and through which no stripe of
+the row pass runs (:func:`through_row_stripes`).
 
 :func:`merge_passes` joins the two passes' points into one set in which each segment is one
 stripe piece found by one pass. Where both found one stripe (a stripe leaning 35-55 degrees is
@@ -92,9 +92,11 @@ WEAK_FRACTION = 0.4
 #: on box tops run over 20-100 columns.
 MIN_LENGTH_FACTOR = 2
 #: A column-pass segment is dropped where it passes through this many stripes of the row pass
-#: (:func:`crossing_segments`): the row-pass stripe has points this many rows above and below
-#: the crossing.
-_MAX_CROSSINGS = 2
+#: (:func:`through_row_stripes`): the row-pass stripe has points this many rows above and below
+#: the crossing. Stripes do not cross: a run of maxima along a row through upright stripes is
+#: a horizontal edge or a row of dots, not a stripe (a leaning stripe meets upright ones where
+#: a surface turns, but ends there).
+_MAX_CROSSINGS = 1
 _CROSS_ROWS = 3
 #: The column pass runs on tiles of this many px where :func:`leaning_regions` finds a hint
 #: of a leaning stripe, and on their neighbours.
@@ -257,6 +259,7 @@ def column_pass(
             level,
             background="opening",
             lean_decimation=_LEAN_DECIMATION,
+            keep_ends=True,
         )
         found, firm, slope = find_ridge_centres_validated(
             slits, threshold, ridge, method, sat, stripe_width_px, taps
@@ -301,8 +304,8 @@ def link_columns(
     :data:`_JOIN_GAP` columns that no stripe of the row pass crosses: ``barrier``, their
     (v, u)), kept where :data:`MIN_LENGTH_FACTOR` times ``min_length`` long, where one of
     their centres is strong (``strong``: a single pixel shows it, not the ridge response
-    alone; :func:`strong_segments`) and where they cross no more than one stripe of the row
-    pass (:func:`crossing_segments`).
+    alone; :func:`strong_segments`) and where no stripe of the row pass runs through them
+    (:func:`through_row_stripes`).
 
     Returns
     -------
@@ -312,47 +315,40 @@ def link_columns(
     seg = join_collinear(c.v, c.u, seg, _JOIN_GAP, _JOIN_TOL_PX, barrier)
     seg = drop_short(seg, MIN_LENGTH_FACTOR * link["min_length"])
     seg = strong_segments(seg, strong)
-    return crossing_segments(c, seg, barrier)
+    return strong_segments(seg, through_row_stripes(c, barrier), at_most=_MAX_CROSSINGS - 1)
 
 
-def strong_segments(segment: I64, strong: NDArray[np.bool_]) -> I64:
+def strong_segments(segment: I64, strong: NDArray[np.bool_], at_most: int | None = None) -> I64:
     """``segment`` (K,) int64 with -1 for the segments none of whose points is ``strong``
-    (K,)."""
+    (K,); with ``at_most``, for those with more than that many ``strong`` points instead."""
     lk = segment >= 0
     if not lk.any():
         return segment
     n = int(segment.max()) + 1
-    has = np.bincount(segment[lk], strong[lk].astype(np.float64), n) > 0
-    return np.where(lk & has[np.maximum(segment, 0)], segment, -1)
+    count = np.bincount(segment[lk], strong[lk].astype(np.float64), n)
+    ok = count > 0 if at_most is None else count <= at_most
+    return np.where(lk & ok[np.maximum(segment, 0)], segment, -1)
 
 
-def crossing_segments(c: StripeCentres, segment: I64, barrier: tuple[F64, F64]) -> I64:
-    """``segment`` (K,) int64 of the column pass's centres ``c`` with -1 for the segments that
-    cross :data:`_MAX_CROSSINGS` or more stripes of the row pass (``barrier``: their linked
-    (v, u), px): points on which a row-pass stripe passes through, within
-    :data:`_SAME_STRIPE_PX` along the row in the point's row and :data:`_CROSS_ROWS` rows above
-    and below. Stripes do not cross: a run of maxima along a row through upright stripes is a
-    horizontal edge or a row of dots, not a stripe (a leaning stripe meets upright ones where
-    a surface turns, but ends there)."""
-    lk = np.flatnonzero(segment >= 0)
+def through_row_stripes(c: StripeCentres, barrier: tuple[F64, F64]) -> NDArray[np.bool_]:
+    """(K,) bool: which of the column pass's centres ``c`` (K,) a stripe of the row pass
+    (``barrier``: its linked (v, u), px) runs through: it has points within
+    :data:`_SAME_STRIPE_PX` along the row in the centre's row and :data:`_CROSS_ROWS` rows
+    above and below."""
     bv, bu = (np.asarray(x, np.float64) for x in barrier)
-    if lk.size == 0 or bv.size == 0:
-        return segment
-    lo_u = min(float(bu.min()), float(c.u[lk].min()))
-    span = max(float(bu.max()), float(c.u[lk].max())) - lo_u + 4.0 * _SAME_STRIPE_PX + 2.0
+    if c.u.size == 0 or bv.size == 0:
+        return np.zeros(c.u.size, bool)
+    lo_u = min(float(bu.min()), float(c.u.min()))
+    span = max(float(bu.max()), float(c.u.max())) - lo_u + 4.0 * _SAME_STRIPE_PX + 2.0
     key = np.sort(np.rint(bv) * span + (bu - lo_u))
-    rows, us = np.rint(c.v[lk]), c.u[lk] - lo_u
-    through = np.ones(lk.size, bool)
+    rows, us = np.rint(c.v), c.u - lo_u
+    through = np.ones(c.u.size, bool)
     for dr in (0, -_CROSS_ROWS, _CROSS_ROWS):
         k = (rows + dr) * span + us
         first = np.searchsorted(key, k - _SAME_STRIPE_PX, "left")
         last = np.searchsorted(key, k + _SAME_STRIPE_PX, "right")
         through &= last > first
-    n = int(segment.max()) + 1
-    crossings = np.bincount(segment[lk], through.astype(np.float64), n)
-    return np.where(
-        (segment >= 0) & (crossings[np.maximum(segment, 0)] < _MAX_CROSSINGS), segment, -1
-    )
+    return through
 
 
 def _end_lines(a: F64, b: F64, seg: I64, n: int, half: int) -> tuple:
@@ -666,7 +662,9 @@ def merge_passes(
             if row_weak is None
             else (row_weak[0][row_keep], row_weak[1][row_keep])
         )
-        row_segment = link_weak(rows.u[row_keep], rows.v[row_keep], strong, slope, **link)
+        row_segment = link_weak(
+            rows.u[row_keep], rows.v[row_keep], strong, slope, rows.peak[row_keep], **link
+        )
         # a weak centre counts in a segment only
         row_keep[row_keep] = (row_segment >= 0) | strong
         row_segment = row_segment[(row_segment >= 0) | strong]
