@@ -156,7 +156,7 @@ def compile_kernels() -> None:
     float32 images (each pixel type has its own machine code).
     """
     from multislit.stripes.openings import follow_stripe_opening
-    from multislit.stripes.response import lean_slopes, ridge_response
+    from multislit.stripes.response import lean_slopes, ridge_response, wide_centres
     from multislit.stripes.separation import fill_dots
 
     _compile_refine_kernels()
@@ -173,3 +173,4 @@ def compile_kernels() -> None:
         follow_stripe_opening(x, vertical_opening(x, 5), 5, np.full((12, 12), 30.0), 4, 0.0)
         ridge_response(x, 4.0, np.full((12, 12), 0.5, np.float32))  # along a leaning stripe
         lean_slopes(x, 4.0)
+        wide_centres(x, 2.0, np.array([20]), np.array([23]), np.zeros(1))

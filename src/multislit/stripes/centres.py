@@ -11,7 +11,7 @@ from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numpy.typing import ArrayLike, NDArray
 
-from multislit.stripes.response import lean_slopes, ridge_response, slopes_at
+from multislit.stripes.response import lean_slopes, ridge_response, slopes_at, wide_centres
 from multislit.stripes.separation import mask_runs, quantisation_step
 from multislit.stripes.sizes import FWHM_PER_SIGMA, MIN_RIDGE_CONTRAST, ridge_contrast
 from multislit.stripes.validation import (
@@ -500,7 +500,10 @@ def find_ridge_centres_validated(
     :func:`find_stripe_centres` (strong). The response integrates along the stripes' lean
     where they lean (:func:`~multislit.stripes.response.lean_slopes`), and each centre
     carries that lean for the linking (:func:`~multislit.stripes.chains.link_segments`'
-    ``slope``).
+    ``slope``); the sub-pixel fit averages the rows along it too. On a stripe much wider than
+    ``sw`` (where the surface grazes the projector) the centre is the response's at twice the
+    width (:func:`~multislit.stripes.response.wide_centres`): the 3-point fit would find the
+    speckle grains on it.
 
     Parameters
     ----------
@@ -568,7 +571,8 @@ def _centres(
         strong = _pixel_above(s, r, c, thr_exact)
         keep = strong | (b >= RIDGE_SUPPORT * resp[r, c0])
         r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
-        lean = lean[keep]
+        lean, c0 = lean[keep], c0[keep]
+        wide, u_wide = wide_centres(s, float(sw), r, c0, resp[r, c0].astype(np.float64))
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
     known = width[np.isfinite(width)]
     fwhm = sw if sw is not None else float(np.median(known)) if known.size else 3.0
@@ -577,6 +581,8 @@ def _centres(
     if method in ("centroid", "steger"):
         delta, _ = _window_offset(s, r, c, method, fwhm, taps)
     u = c + delta
+    if ridge_threshold is not None and wide.any():
+        u = np.where(wide, u_wide, u)
     v = r.astype(np.float64)
     reach = np.zeros(u.shape)
     if sv.size:

@@ -272,3 +272,107 @@ def ridge_threshold(threshold: float, stripe_width_px: float) -> float:
     :data:`RIDGE_K_FRACTION` times as many sigmas of the response's noise (the kernels' gain
     for stripes of FWHM ``stripe_width_px``, :func:`ridge_kernels`)."""
     return RIDGE_K_FRACTION * threshold * ridge_kernels(float(stripe_width_px))[2]
+
+
+#: A stripe is wide where the response at twice the stripe's sigma (on the image averaged over
+#: 2 x 2 px) exceeds the response at its sigma by this factor: about 1 on a stripe of the
+#: nominal width, 1.5 on one 1.5 times as wide, 2 on one twice as wide (where the surface
+#: grazes the projector, a sphere's limb); and where the slit image at the wide centre keeps
+#: :data:`_WIDE_PEAK` of the narrow peak (not a valley between two stripes that the wide
+#: filter takes for one).
+WIDE_RATIO = 1.6
+#: The wide response's maximum is sought up to this many px (of the averaged image) from a
+#: centre: on a wide speckled stripe the narrow response peaks on the speckle grains.
+_WIDE_REACH = 3
+_WIDE_PEAK = 0.6
+
+
+def wide_centres(
+    slits: NDArray,
+    stripe_width_px: float,
+    r: NDArray[np.intp],
+    c: NDArray[np.intp],
+    response: NDArray[np.float64],
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """Which centres lie on a wide stripe, and their centre at its width.
+
+    The ridge response of the slit image averaged over 2 x 2 px at the stripe's sigma (twice
+    the sigma in the image's px, integrated along the columns over twice the rows), at each
+    centre's row (between the averaged rows about it), its maximum within
+    :data:`_WIDE_REACH` averaged px of the centre's column: where it exceeds
+    :data:`WIDE_RATIO` times ``response`` (the response at the stripe's own width at the
+    centre) and the slit image there keeps :data:`_WIDE_PEAK` of its value at ``c`` (over
+    three rows), the stripe is wide, and its centre is that maximum's (a parabola through
+    three samples), which the speckle on it moves far less than the narrow filter's.
+
+    Parameters
+    ----------
+    slits : (H, W) slit image (uint8, uint16 or float32)
+    stripe_width_px : float, px, the stripes' nominal FWHM
+    r, c : (K,) intp, the centres' rows and columns (px; ``c`` the narrow response's peak)
+    response : (K,) float64, :func:`ridge_response` at the centres
+
+    Returns
+    -------
+    wide : (K,) bool
+    u : (K,) float64, px, the centre column at the stripe's width where ``wide`` (NaN else)
+    """
+    h, w = slits.shape
+    if h < 4 or w < 8 or r.size == 0:
+        return np.zeros(r.size, bool), np.full(r.size, np.nan)
+    half = cv2.resize(slits, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    resp = ridge_response(half, stripe_width_px)
+    wide, u = _wide_at(resp, r, c, np.asarray(response, np.float64), WIDE_RATIO, _WIDE_REACH)
+    if wide.any():
+        # the slit image over three rows at the wide centre and at the narrow peak
+        k = np.flatnonzero(wide)
+        rows = np.clip(r[k][:, None] + np.arange(-1, 2)[None, :], 0, h - 1)
+        at = slits[rows, np.clip(np.rint(u[k]).astype(np.intp), 0, w - 1)[:, None]]
+        peak = slits[rows, c[k][:, None]]
+        valley = at.astype(np.float64).sum(1) < _WIDE_PEAK * peak.astype(np.float64).sum(1)
+        wide[k[valley]] = False
+        u[k[valley]] = np.nan
+    return wide, u
+
+
+@njit(cache=True)
+def _wide_at(resp, r, c, narrow, ratio, reach):
+    """:func:`wide_centres` on the averaged image's response ``resp`` (H // 2, W // 2):
+    per centre (``r``, ``c``) (K,), the response's maximum in each of the two averaged rows
+    about row r (hill-climbed from column c // 2 within ``reach``), blended by the row's
+    position between them; wide where the blend exceeds ``ratio`` times ``narrow`` (K,)."""
+    hh, hw = resp.shape
+    n = r.size
+    wide = np.zeros(n, np.bool_)
+    u = np.full(n, np.nan)
+    for k in range(n):
+        y = (r[k] - 0.5) / 2.0
+        i0 = min(max(int(np.floor(y)), 0), hh - 1)
+        i1 = min(i0 + 1, hh - 1)
+        fy = min(max(y - i0, 0.0), 1.0)
+        j0 = min(c[k] // 2, hw - 1)
+        val = 0.0
+        pos = 0.0
+        ok = True
+        for ii, wt in ((i0, 1.0 - fy), (i1, fy)):
+            row = resp[ii]
+            j = j0
+            for _ in range(reach):
+                if j > 0 and row[j - 1] > row[j]:
+                    j -= 1
+                elif j < hw - 1 and row[j + 1] > row[j]:
+                    j += 1
+                else:
+                    break
+            if j == 0 or j == hw - 1 or row[j - 1] > row[j] or row[j + 1] > row[j]:
+                ok = False
+                break
+            a, b, cc = float(row[j - 1]), float(row[j]), float(row[j + 1])
+            den = a - 2.0 * b + cc
+            off = 0.5 * (a - cc) / den if den < 0 else 0.0
+            val += wt * b
+            pos += wt * (j + min(max(off, -0.5), 0.5))
+        if ok and val > ratio * narrow[k]:
+            wide[k] = True
+            u[k] = 2.0 * pos + 0.5
+    return wide, u
