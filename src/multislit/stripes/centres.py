@@ -485,6 +485,7 @@ def find_ridge_centres_validated(
     sw: float,
     taps: int = 1,
     follow: bool = True,
+    image: NDArray | None = None,
 ) -> RidgeCentres:
     """Stripe centres where the ridge response stands out, which of them a single pixel
     shows too, and the stripes' lean at them.
@@ -516,13 +517,16 @@ def find_ridge_centres_validated(
     taps : int, rows (odd) averaged along the stripe for the sub-pixel fit
     follow : bool, integrate and fit along the stripes' lean where they lean (default), else
         along the columns everywhere (all slopes 0)
+    image : (H, W) the image the slit image was made from, or None: a weak centre (not on a
+        wide stripe) is kept only where it stands out of both sides alike in it
+        (:func:`edge_contrast`)
 
     Returns
     -------
     RidgeCentres
     """
     return RidgeCentres(
-        *_centres(s, threshold, method, sat, sw, taps, False, ridge_threshold, follow)
+        *_centres(s, threshold, method, sat, sw, taps, False, ridge_threshold, follow, image)
     )
 
 
@@ -545,6 +549,7 @@ def _centres(
     reject_texture: bool,
     ridge_threshold: float | None,
     follow: bool = True,
+    image: NDArray | None = None,
 ) -> tuple[StripeCentres, NDArray[np.bool_], F64]:
     """The centres of :func:`find_centres_validated` (``ridge_threshold`` None: the peaks are
     the slit image's row maxima above ``threshold``, all strong, upright) or of
@@ -573,6 +578,12 @@ def _centres(
         r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
         lean, c0 = lean[keep], c0[keep]
         wide, u_wide = wide_centres(s, float(sw), r, c0, resp[r, c0].astype(np.float64))
+        if image is not None:  # a wide stripe's sides lie beyond the nominal width's reach
+            weak = np.flatnonzero(~strong & ~wide)
+            keep = np.ones(r.size, bool)
+            keep[weak] = edge_contrast(image, r[weak], c[weak], float(sw)) >= EDGE_CONTRAST
+            r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
+            lean, wide, u_wide = lean[keep], wide[keep], u_wide[keep]
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
     known = width[np.isfinite(width)]
     fwhm = sw if sw is not None else float(np.median(known)) if known.size else 3.0
@@ -615,6 +626,63 @@ def _centres(
     if reject_texture:
         keep &= stripe_like(s, u, v, fwhm, reach)
     return StripeCentres(u[keep], v[keep], b[keep], width[keep]), strong[keep], lean[keep]
+
+
+#: A weak centre is kept where :func:`edge_contrast` reaches this: a stripe stands out of both
+#: sides alike; the bright rim of a shadow's or an object's edge (a few grey levels above the
+#: lit side, which the row median takes away with the step) stands out of the dark side by the
+#: step as well.
+EDGE_CONTRAST = 0.7
+
+
+def edge_contrast(
+    image: NDArray, r: NDArray[np.intp], c: NDArray[np.intp], stripe_width_px: float
+) -> F64:
+    """(K,) float64: how alike a peak at (``r``, ``c``) (K,) of ``image`` (H, W) stands out of
+    its two sides: (p - max(L, R)) / (p - min(L, R)), with p the image averaged over the three
+    rows about the peak at its column and L, R the lowest of those averages 1 to 2 stripe
+    widths to either side (a side outside the image taking the other's value); 1 on a stripe
+    on an even background, 0 on a step. 0 where p is no higher than the sides."""
+    if r.size == 0:
+        return np.zeros(0)
+    d0 = max(1, math.ceil(stripe_width_px))
+    d1 = max(d0 + 1, math.ceil(2.0 * stripe_width_px))
+    return _edge_contrast(image, r, c, d0, d1)
+
+
+@njit(cache=True, inline="always")
+def _column_mean(img, r0, r1, j):
+    """The mean of ``img``'s column ``j`` over rows ``r0`` .. ``r1`` - 1."""
+    acc = 0.0
+    for i in range(r0, r1):
+        acc += float(img[i, j])
+    return acc / (r1 - r0)
+
+
+@njit(cache=True)
+def _edge_contrast(img, r, c, d0, d1):
+    """:func:`edge_contrast` with the sides ``d0`` .. ``d1`` px from the peak."""
+    h, w = img.shape
+    out = np.zeros(r.size)
+    for k in range(r.size):
+        r0 = max(r[k] - 1, 0)
+        r1 = min(r[k] + 2, h)
+        p = _column_mean(img, r0, r1, c[k])
+        sides = np.full(2, np.inf)
+        for si, sign in ((0, -1), (1, 1)):
+            for o in range(d0, d1 + 1):
+                j = c[k] + sign * o
+                if 0 <= j < w:
+                    sides[si] = min(sides[si], _column_mean(img, r0, r1, j))
+        if sides[0] == np.inf:
+            sides[0] = sides[1]
+        if sides[1] == np.inf:
+            sides[1] = sides[0]
+        lo = min(sides[0], sides[1])
+        hi = max(sides[0], sides[1])
+        if p > hi and hi != np.inf:
+            out[k] = (p - hi) / (p - lo)
+    return out
 
 
 @njit(cache=True)

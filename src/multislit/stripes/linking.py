@@ -262,7 +262,14 @@ def extract_slits(
         slope = np.zeros(centres.u.size)
     else:
         centres, strong, slope = find_ridge_centres_validated(
-            slits, k_sigma * noise, ridge_threshold(k_sigma * noise, sw), method, sat, sw, taps
+            slits,
+            k_sigma * noise,
+            ridge_threshold(k_sigma * noise, sw),
+            method,
+            sat,
+            sw,
+            taps,
+            image=img,
         )
     if reject_texture:
         r = np.rint(centres.v).astype(np.intp)

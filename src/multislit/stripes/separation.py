@@ -328,15 +328,15 @@ def _run_edge(c, r, cur, prev, start, cols, starts, stops, k):
 
 
 @njit(cache=True)
-def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, keep_ends):
+def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows):
     """:func:`fill_dots`'s refill of the vertical runs of dot pixels (``cols``, ``starts``,
     ``stops`` (K,) of :func:`_mask_runs_v`) in ``out`` (a copy of ``hp``): a run touching the
     image border or longer than ``lim`` rows takes the opening ``opened``; the others are
     interpolated between the clean pixels t rows above and n + 1 - t rows below, shifted
     sideways along the stripe by the run's slope (``slopes`` (K,) float32 px per row; (0,) for
-    straight above and below) and read by linear interpolation along their rows, with
-    ``keep_ends`` no lower than the opening where a sample is on a stripe (:func:`_blend`);
-    ``rint``: round, for integer images."""
+    straight above and below) and read by linear interpolation along their rows, no lower
+    than the opening within ``end_rows`` of a stripe's end (:func:`_blend`); ``rint``: round,
+    for integer images."""
     h, w = hp.shape
     for i in range(cols.size):
         c = cols[i]
@@ -359,7 +359,9 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, keep_end
                     rint,
                     hp[start + t - 1, c],
                     opened[start + t - 1, c],
-                    keep_ends,
+                    t,
+                    n + 1,
+                    end_rows,
                 )
             continue
         s = float(slopes[i])
@@ -376,7 +378,9 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, keep_end
                     rint,
                     hp[start + t - 1, c],
                     opened[start + t - 1, c],
-                    keep_ends,
+                    t,
+                    n + 1,
+                    end_rows,
                 )
             continue
         for t in range(1, n + 1):
@@ -389,23 +393,28 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, keep_end
                 rint,
                 hp[start + t - 1, c],
                 opened[start + t - 1, c],
-                keep_ends,
+                t,
+                n + 1,
+                end_rows,
             )
 
 
 @njit(cache=True, inline="always")
-def _blend(above, below, frac, rint, here, floor, keep_ends):
-    """A refilled dot pixel of :func:`_fill_runs`: ``above`` + (``below`` - ``above``) (in
-    float32) times ``frac``, rounded where ``rint``, with ``keep_ends`` no darker than the
-    opening ``floor`` where one of ``above`` and ``below`` reaches half of it and the other
-    does not (a stripe's end), and no brighter than the pixel ``here``."""
+def _blend(above, below, frac, rint, here, floor, t, n1, end_rows):
+    """A refilled dot pixel of :func:`_fill_runs`, ``t`` rows below the sample ``above`` and
+    ``n1`` - ``t`` above ``below``: ``above`` + (``below`` - ``above``) (in float32) times
+    ``frac``, rounded where ``rint``, no darker than the opening ``floor`` where one sample
+    reaches half of it and the other does not (a stripe's end) and the pixel is at most
+    ``end_rows`` from the one that does, and no brighter than the pixel ``here``."""
     val = float(above) + float(np.float32(below - above)) * frac
     if rint:
         val = np.rint(val)
-    # a stripe's end: one sample on the stripe, the other off it
-    hi, lo = max(float(above), float(below)), min(float(above), float(below))
-    if keep_ends and 2.0 * hi >= float(floor) > 2.0 * lo:
-        val = max(val, float(floor))
+    if end_rows > 0:
+        a, b, f = float(above), float(below), float(floor)
+        if (2.0 * a >= f > 2.0 * b and t <= end_rows) or (
+            2.0 * b >= f > 2.0 * a and n1 - t <= end_rows
+        ):
+            val = max(val, f)
     return min(val, float(here))
 
 
@@ -451,7 +460,8 @@ def _fill(
         else:
             slopes[inner] = _slopes_at(hp, slope, mids, cols[inner])
     rint = bool(np.issubdtype(hp.dtype, np.integer))
-    _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, bool(keep_ends))
+    end_rows = int(length) // 2 if keep_ends else 0
+    _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows)
     return out
 
 
@@ -478,11 +488,12 @@ def fill_dots(
     Runs longer than 2 ``length`` or touching the image border keep the opened value.
     With ``keep_ends``, where one of the two samples lies on a stripe (at least half the
     opening at the pixel) and the other does not, the interpolation is taken no lower than
-    the opening: near a stripe's end the sample
-    beyond it is background, and the ramp down to it would cut the stripe's last rows out
-    (the opening, a line of ``length`` px inside the stripe, keeps them; a dot is shorter
+    the opening over half the line's length from the stripe's side: near a stripe's end the
+    sample beyond it is background, and the ramp down to it would cut the stripe's last rows
+    out (the opening, a line of ``length`` px inside the stripe, keeps them; a dot is shorter
     than the line); between two background samples (dots one above another off the stripes,
-    whose opening the line fits inside) it is not.
+    whose opening the line fits inside) it is not; and no further (where the stripe meets
+    another one at an occlusion, its end kept whole would bridge the gap between them).
     The result is clipped to ``hp`` so that ``hp - slits >= 0``. One compiled pass over the
     dot mask.
 
