@@ -28,7 +28,7 @@ def test_peak_samples_match_gather_and_argmax(dtype):
             vals = _gather(img, r, c, np.arange(-2, 3), taps)
             j = 1 + np.argmax(vals[:, 1:4], axis=1)
             k = np.arange(r.size)
-            cm, a, b, cc = _peak_samples(img, r, c, _binomial_weights(taps))
+            cm, a, b, cc = _peak_samples(img, r, c, _binomial_weights(taps), np.zeros(0))
             np.testing.assert_array_equal(cm, c + (j - 2))
             np.testing.assert_array_equal(a, vals[k, j - 1])
             np.testing.assert_array_equal(b, vals[k, j])

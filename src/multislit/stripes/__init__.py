@@ -11,12 +11,18 @@ scattered along them, by stage:
    interpolation along the stripe's lean (d; :mod:`~multislit.stripes.slope`); the dots are the
    difference (e). The stripe and dot sizes that set the filters are estimated from the image
    (:mod:`~multislit.stripes.sizes`).
-2. :func:`find_stripe_centres` (:mod:`~multislit.stripes.centres`): in every row, each
-   stripe's local maximum above a noise threshold, refined to sub-pixel by a 3-point fit
-   (Gaussian by default); saturated (flat-top) stripes are centred from a Gaussian fit to the
-   unsaturated flanks.
-3. :func:`link_segments` (:mod:`~multislit.stripes.linking`): centre points in consecutive rows
-   are chained into segments, broken at jumps, gaps and ambiguities.
+2. The centres (:mod:`~multislit.stripes.centres`): in every row, the maxima of the ridge
+   response (:mod:`~multislit.stripes.response`: a matched filter across the stripe at its
+   width, integrated along the stripe's lean over a few rows, so that a stripe a few noise
+   sigmas above its background per pixel still stands out), each refined to sub-pixel by a
+   3-point fit (Gaussian by default) on the slit image averaged along the stripe; saturated
+   (flat-top) stripes are centred from a Gaussian fit to the unsaturated flanks.
+   :func:`find_stripe_centres` takes the slit image's own maxima above a noise threshold
+   (the photo mode's centres).
+3. :func:`link_segments` (:mod:`~multislit.stripes.chains`): centre points in consecutive rows
+   are chained into segments along the stripes' lean, broken at jumps, gaps and ambiguities;
+   the centres only the ridge response shows are kept in long enough runs
+   (:func:`~multislit.stripes.chains.settle_weak`).
 
 :func:`extract_slits` runs the three steps. After identification, :func:`refine_centres`
 (:mod:`~multislit.stripes.refine`) re-centres the points for triangulation. :func:`as_image`
@@ -51,13 +57,9 @@ from multislit.stripes.centres import (
     stripe_like,
     texture_sigma,
 )
+from multislit.stripes.chains import DEFAULT_MIN_LENGTH, link_segments
 from multislit.stripes.channels import choose_channel, resolve_channel
-from multislit.stripes.linking import (
-    DEFAULT_MIN_LENGTH,
-    SlitExtraction,
-    extract_slits,
-    link_segments,
-)
+from multislit.stripes.linking import SlitExtraction, extract_slits
 from multislit.stripes.openings import (
     STREAK_ANGLES_DEG,
     line_kernel,
@@ -154,6 +156,7 @@ def compile_kernels() -> None:
     float32 images (each pixel type has its own machine code).
     """
     from multislit.stripes.openings import follow_stripe_opening
+    from multislit.stripes.response import lean_slopes, ridge_response, wide_centres
     from multislit.stripes.separation import fill_dots
 
     _compile_refine_kernels()
@@ -168,3 +171,6 @@ def compile_kernels() -> None:
         fill_dots(x, vertical_opening(x, 5), 1.0, 5)
         fill_dots(x, vertical_opening(x, 5), 1.0, 5, stripe_slope(x, 2.5))
         follow_stripe_opening(x, vertical_opening(x, 5), 5, np.full((12, 12), 30.0), 4, 0.0)
+        ridge_response(x, 4.0, np.full((12, 12), 0.5, np.float32))  # along a leaning stripe
+        lean_slopes(x, 4.0)
+        wide_centres(x, 2.0, np.array([20]), np.array([23]), np.zeros(1))

@@ -11,6 +11,7 @@ from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numpy.typing import ArrayLike, NDArray
 
+from multislit.stripes.response import lean_slopes, ridge_response, slopes_at, wide_centres
 from multislit.stripes.separation import mask_runs, quantisation_step
 from multislit.stripes.sizes import FWHM_PER_SIGMA, MIN_RIDGE_CONTRAST, ridge_contrast
 from multislit.stripes.validation import (
@@ -111,12 +112,14 @@ def _gather(img: NDArray, r: NDArray, c: NDArray, offsets: NDArray, taps: int = 
 
 
 @njit(cache=True)
-def _peak_samples(img, r, c, wts):
+def _peak_samples(img, r, c, wts, lean):
     """The three samples of :func:`find_stripe_centres`'s sub-pixel fit at the peaks (``r``,
     ``c``) (K,) intp: the values of :func:`_gather` (``wts`` the binomial rows) at c - 2 ..
     c + 2, the peak moved to the largest of those at c - 1 .. c + 1 (the first of equal
-    ones, as np.argmax). Returns the moved columns (K,) intp and the samples left of, at and
-    right of them (K,) float64 each; one pass, no (K, 5) array."""
+    ones, as np.argmax). Where ``lean`` (K,) float64 (px per row; (0,) for none) is not 0,
+    row r + i is read along the stripe, shifted by ``lean * i`` px (linear interpolation
+    along the row, columns clamped). Returns the moved columns (K,) intp and the samples left
+    of, at and right of them (K,) float64 each; one pass, no (K, 5) array."""
     h, w = img.shape
     half = wts.size // 2
     n = r.size
@@ -129,11 +132,21 @@ def _peak_samples(img, r, c, wts):
     for k in range(n):
         for i in range(wts.size):
             rows[i] = min(max(r[k] + i - half, 0), h - 1)
+        t = lean[k] if lean.size else 0.0
         for j in range(5):
-            col = min(max(c[k] + j - 2, 0), w - 1)
             acc = 0.0
-            for i in range(wts.size):
-                acc += wts[i] * float(img[rows[i], col])
+            if t == 0.0:
+                col = min(max(c[k] + j - 2, 0), w - 1)
+                for i in range(wts.size):
+                    acc += wts[i] * float(img[rows[i], col])
+            else:
+                for i in range(wts.size):
+                    x = min(max(c[k] + j - 2 + t * (i - half), 0.0), w - 1.0)
+                    x0 = min(int(x), w - 2) if w > 1 else 0
+                    f = x - x0
+                    a = float(img[rows[i], x0])
+                    b = float(img[rows[i], min(x0 + 1, w - 1)])
+                    acc += wts[i] * (a + (b - a) * f)
             v[j] = acc
         j = 1
         if v[2] > v[j]:
@@ -213,6 +226,16 @@ def _row_maxima(
             t = np.nextafter(t, np.float32(-np.inf))
         return _row_maxima_kernel(s, t, True, near, use_near)
     return _row_maxima_kernel(s, thr, True, near, use_near)
+
+
+def row_maxima(s: NDArray, threshold: float) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Rows and columns (K,) intp, row-major, of the pixels of ``s`` (H, W) greater than their
+    left and not less than their right neighbour that exceed ``threshold`` (intensity units,
+    compared as :func:`find_stripe_centres` compares it: floored for integer images)."""
+    if s.shape[1] < 3:
+        e = np.empty(0, np.intp)
+        return e, e.copy()
+    return _row_maxima(s, _exact_threshold(s, threshold), np.zeros((1, 1), bool), False)
 
 
 @njit(cache=True)
@@ -425,21 +448,142 @@ def find_centres_validated(
     reject_texture: bool = False,
 ) -> StripeCentres:
     """:func:`find_stripe_centres` on validated arguments; ``threshold`` in intensity units."""
+    return _centres(s, threshold, method, sat, sw, taps, reject_texture, None)[0]
+
+
+class RidgeCentres(NamedTuple):
+    """Result of :func:`find_ridge_centres_validated`.
+
+    Attributes
+    ----------
+    centres : StripeCentres, K points sorted by (v, u)
+    strong : (K,) bool, the slit image's largest pixel within 1 px in the row exceeds the
+        single pixel's threshold (else the ridge response alone found the centre: weak)
+    slope : (K,) float64, px per row, the stripes' lean du/dv at the centre
+        (:func:`~multislit.stripes.response.lean_slopes`; 0 where they stand upright)
+    """
+
+    centres: StripeCentres
+    strong: NDArray[np.bool_]
+    slope: F64
+
+
+#: A centre the ridge response alone finds (:func:`find_ridge_centres_validated`) is kept where
+#: the slit image at its peak, averaged over the fit's rows, reaches this fraction of the
+#: response there: on a stripe the two are about equal (both the stripe's amplitude); a few
+#: rows past a stripe's end, where the response's smoothing along the stripe still reaches,
+#: the slit image has fallen to nothing.
+RIDGE_SUPPORT = 0.5
+
+
+def find_ridge_centres_validated(
+    s: NDArray,
+    threshold: float,
+    ridge_threshold: float,
+    method: str,
+    sat: NDArray[np.bool_],
+    sw: float,
+    taps: int = 1,
+    follow: bool = True,
+    image: NDArray | None = None,
+) -> RidgeCentres:
+    """Stripe centres where the ridge response stands out, which of them a single pixel
+    shows too, and the stripes' lean at them.
+
+    The peaks are the row maxima of the ridge response (:func:`~multislit.stripes.response.
+    ridge_response`: a matched filter across the stripe, integrated along it) above
+    ``ridge_threshold``; each is centred to sub-pixel on the slit image as
+    :func:`find_stripe_centres` centres its peaks (the largest smoothed sample within 1 px,
+    ``method``'s 3-point fit). A centre is *strong* where the slit image's largest pixel
+    within 1 px of it in its row exceeds ``threshold`` (what :func:`find_stripe_centres`
+    takes), *weak* otherwise; a weak centre is kept where its smoothed peak reaches
+    :data:`RIDGE_SUPPORT` times the response at it. Saturated runs are centred as in
+    :func:`find_stripe_centres` (strong). The response integrates along the stripes' lean
+    where they lean (:func:`~multislit.stripes.response.lean_slopes`), and each centre
+    carries that lean for the linking (:func:`~multislit.stripes.chains.link_segments`'
+    ``slope``); the sub-pixel fit averages the rows along it too. On a stripe much wider than
+    ``sw`` (where the surface grazes the projector) the centre is the response's at twice the
+    width (:func:`~multislit.stripes.response.wide_centres`): the 3-point fit would find the
+    speckle grains on it.
+
+    Parameters
+    ----------
+    s : (H, W) slit image, background ~ 0
+    threshold : float, intensity units, the single pixel's detection threshold
+    ridge_threshold : float, intensity units, the response's detection threshold
+    method : one of :data:`CENTRE_METHODS`
+    sat : (H, W) bool, saturated stripe pixels
+    sw : float, px, the stripes' FWHM (the response's scale)
+    taps : int, rows (odd) averaged along the stripe for the sub-pixel fit
+    follow : bool, integrate and fit along the stripes' lean where they lean (default), else
+        along the columns everywhere (all slopes 0)
+    image : (H, W) the image the slit image was made from, or None: a weak centre (not on a
+        wide stripe) is kept only where it stands out of both sides alike in it
+        (:func:`edge_contrast`)
+
+    Returns
+    -------
+    RidgeCentres
+    """
+    return RidgeCentres(
+        *_centres(s, threshold, method, sat, sw, taps, False, ridge_threshold, follow, image)
+    )
+
+
+def _exact_threshold(s: NDArray, threshold: float) -> float:
+    """``threshold`` as the image's pixels are compared with it: floored for integer images,
+    rounded to float32 for float32 ones."""
+    if np.issubdtype(s.dtype, np.integer):
+        return float(math.floor(threshold))
+    with np.errstate(over="ignore"):
+        return float(np.float32(threshold))
+
+
+def _centres(
+    s: NDArray,
+    threshold: float,
+    method: str,
+    sat: NDArray[np.bool_],
+    sw: float | None,
+    taps: int,
+    reject_texture: bool,
+    ridge_threshold: float | None,
+    follow: bool = True,
+    image: NDArray | None = None,
+) -> tuple[StripeCentres, NDArray[np.bool_], F64]:
+    """The centres of :func:`find_centres_validated` (``ridge_threshold`` None: the peaks are
+    the slit image's row maxima above ``threshold``, all strong, upright) or of
+    :func:`find_ridge_centres_validated`, which are strong, and the lean at them."""
     h, w = s.shape
     if w < 3:
         e = np.empty(0)
-        return StripeCentres(e, e, e, e)
-    if np.issubdtype(s.dtype, np.integer):
-        thr = math.floor(threshold)
-        thr_exact = float(thr)
-    else:  # a float32 image is compared with the threshold rounded to float32
-        thr = threshold
-        with np.errstate(over="ignore"):
-            thr_exact = float(np.float32(threshold))
+        return StripeCentres(e, e, e, e), np.zeros(0, bool), e.copy()
+    thr_exact = _exact_threshold(s, threshold)
     su, sv, speak, swidth, sreach, near = _saturated_centres(s, sat)
-    r, c = _row_maxima(s, thr_exact, near, sv.size > 0)
-    # smoothed samples at c-2 .. c+2; re-centre on the smoothed maximum among c-1 .. c+1
-    c, a, b, cc = _peak_samples(s, r, c, _binomial_weights(taps))
+    wts = _binomial_weights(taps)
+    if ridge_threshold is None:
+        r, c = _row_maxima(s, thr_exact, near, sv.size > 0)
+        # smoothed samples at c-2 .. c+2; re-centre on the smoothed maximum among c-1 .. c+1
+        c, a, b, cc = _peak_samples(s, r, c, wts, np.zeros(0))
+        strong = np.ones(r.size, bool)
+        lean = np.zeros(r.size)
+    else:
+        cells = lean_slopes(s, float(sw)) if follow else None
+        resp = ridge_response(s, float(sw), cells)
+        r, c0 = _row_maxima(resp, float(ridge_threshold), near, sv.size > 0)
+        lean = slopes_at(cells, r, c0) if follow else np.zeros(r.size)
+        c, a, b, cc = _peak_samples(s, r, c0, wts, lean)
+        strong = _pixel_above(s, r, c, thr_exact)
+        keep = strong | (b >= RIDGE_SUPPORT * resp[r, c0])
+        r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
+        lean, c0 = lean[keep], c0[keep]
+        wide, u_wide = wide_centres(s, float(sw), r, c0, resp[r, c0].astype(np.float64))
+        if image is not None:  # a wide stripe's sides lie beyond the nominal width's reach
+            weak = np.flatnonzero(~strong & ~wide)
+            keep = np.ones(r.size, bool)
+            keep[weak] = edge_contrast(image, r[weak], c[weak], float(sw)) >= EDGE_CONTRAST
+            r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
+            lean, wide, u_wide = lean[keep], wide[keep], u_wide[keep]
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
     known = width[np.isfinite(width)]
     fwhm = sw if sw is not None else float(np.median(known)) if known.size else 3.0
@@ -448,17 +592,22 @@ def find_centres_validated(
     if method in ("centroid", "steger"):
         delta, _ = _window_offset(s, r, c, method, fwhm, taps)
     u = c + delta
+    if ridge_threshold is not None and wide.any():
+        u = np.where(wide, u_wide, u)
     v = r.astype(np.float64)
     reach = np.zeros(u.shape)
     if sv.size:
-        keep = speak > thr
+        keep = speak > threshold
         u = np.concatenate([u, su[keep]])
         v = np.concatenate([v, sv[keep]])
         b = np.concatenate([b, speak[keep]])
         width = np.concatenate([width, swidth[keep]])
         reach = np.concatenate([reach, sreach[keep]])
+        strong = np.concatenate([strong, np.ones(int(keep.sum()), bool)])
+        lean = np.concatenate([lean, np.zeros(int(keep.sum()))])
         order = np.lexsort((u, v))
         u, v, b, width, reach = u[order], v[order], b[order], width[order], reach[order]
+        strong, lean = strong[order], lean[order]
     # one stripe, one centre: a dot or speckle on a stripe's flank can make a second local
     # maximum a px or two away; of two centres closer than half a stripe width keep the stronger
     min_sep = 0.5 * (sw if sw is not None and math.isfinite(sw) else 3.0)
@@ -471,11 +620,84 @@ def find_centres_validated(
         keep = np.ones(len(u), bool)
         keep[weaker] = False
         u, v, b, width, reach = u[keep], v[keep], b[keep], width[keep], reach[keep]
+        strong, lean = strong[keep], lean[keep]
     # a centre lies in the image (a window method can move it off the border pixel)
     keep = (u >= -0.5) & (u <= w - 0.5)
     if reject_texture:
         keep &= stripe_like(s, u, v, fwhm, reach)
-    return StripeCentres(u[keep], v[keep], b[keep], width[keep])
+    return StripeCentres(u[keep], v[keep], b[keep], width[keep]), strong[keep], lean[keep]
+
+
+#: A weak centre is kept where :func:`edge_contrast` reaches this: a stripe stands out of both
+#: sides alike; the bright rim of a shadow's or an object's edge (a few grey levels above the
+#: lit side, which the row median takes away with the step) stands out of the dark side by the
+#: step as well.
+EDGE_CONTRAST = 0.7
+
+
+def edge_contrast(
+    image: NDArray, r: NDArray[np.intp], c: NDArray[np.intp], stripe_width_px: float
+) -> F64:
+    """(K,) float64: how alike a peak at (``r``, ``c``) (K,) of ``image`` (H, W) stands out of
+    its two sides: (p - max(L, R)) / (p - min(L, R)), with p the image averaged over the three
+    rows about the peak at its column and L, R the lowest of those averages 1 to 2 stripe
+    widths to either side (a side outside the image taking the other's value); 1 on a stripe
+    on an even background, 0 on a step. 0 where p is no higher than the sides."""
+    if r.size == 0:
+        return np.zeros(0)
+    d0 = max(1, math.ceil(stripe_width_px))
+    d1 = max(d0 + 1, math.ceil(2.0 * stripe_width_px))
+    return _edge_contrast(image, r, c, d0, d1)
+
+
+@njit(cache=True, inline="always")
+def _column_mean(img, r0, r1, j):
+    """The mean of ``img``'s column ``j`` over rows ``r0`` .. ``r1`` - 1."""
+    acc = 0.0
+    for i in range(r0, r1):
+        acc += float(img[i, j])
+    return acc / (r1 - r0)
+
+
+@njit(cache=True)
+def _edge_contrast(img, r, c, d0, d1):
+    """:func:`edge_contrast` with the sides ``d0`` .. ``d1`` px from the peak."""
+    h, w = img.shape
+    out = np.zeros(r.size)
+    for k in range(r.size):
+        r0 = max(r[k] - 1, 0)
+        r1 = min(r[k] + 2, h)
+        p = _column_mean(img, r0, r1, c[k])
+        sides = np.full(2, np.inf)
+        for si, sign in ((0, -1), (1, 1)):
+            for o in range(d0, d1 + 1):
+                j = c[k] + sign * o
+                if 0 <= j < w:
+                    sides[si] = min(sides[si], _column_mean(img, r0, r1, j))
+        if sides[0] == np.inf:
+            sides[0] = sides[1]
+        if sides[1] == np.inf:
+            sides[1] = sides[0]
+        lo = min(sides[0], sides[1])
+        hi = max(sides[0], sides[1])
+        if p > hi and hi != np.inf:
+            out[k] = (p - hi) / (p - lo)
+    return out
+
+
+@njit(cache=True)
+def _pixel_above(s, r, c, thr):
+    """(K,) bool: the largest of ``s``'s (H, W) pixels c - 1 .. c + 1 (within the image) in
+    row r exceeds ``thr`` (float64), for the points ``r``, ``c`` (K,) intp."""
+    w = s.shape[1]
+    out = np.empty(r.size, np.bool_)
+    for k in range(r.size):
+        row = s[r[k]]
+        best = -np.inf
+        for j in range(max(c[k] - 1, 0), min(c[k] + 2, w)):
+            best = max(best, float(row[j]))
+        out[k] = best > thr
+    return out
 
 
 #: Largest angle (deg) between a stripe and the image's vertical that :func:`along_slits`

@@ -23,21 +23,27 @@ def link_segments(
     max_du: float = 1.5,
     max_gap: int = 2,
     min_length: int = DEFAULT_MIN_LENGTH,
+    slope: ArrayLike | None = None,
 ) -> I64:
     """Chain centre points of consecutive rows into segments continuous along v.
 
     A point p in row v is linked to a point q in the first row v + g (g = 1 .. max_gap + 1)
     that has any point within ``max_du * g`` px of p's column, if q is the only such point
     there and p is likewise the only candidate in q's first non-empty row above. Ambiguities
-    (two candidates), jumps and longer gaps break the chain. One sort and a compiled linear
-    pass (the windows move monotonically along the sorted points).
+    (two candidates), jumps and longer gaps break the chain. With ``slope``, each point's
+    windows lie along its stripe's lean instead: around its column plus (below) or minus
+    (above) ``slope * g``. One sort and a compiled linear pass (the windows move along the
+    sorted points).
 
     Parameters
     ----------
     u, v : (K,) centre columns and rows (px); v is rounded to integer rows
-    max_du : largest column change per row (px) within a segment
+    max_du : largest column change per row (px) within a segment, from the column the
+        stripe's lean predicts
     max_gap : largest number of missing rows bridged
     min_length : segments with fewer points get label -1
+    slope : (K,) float, px per row, the stripe's lean du/dv at each point; default 0 (the
+        windows straight above and below)
 
     Returns
     -------
@@ -71,11 +77,19 @@ def link_segments(
     us = uu[order] - uu.min()
     rs = rows[order] - rows.min()
     max_g = int(max_gap) + 1
-    # key = row * span + u is sorted; span exceeds the u range plus the search tolerance, so a
-    # search window never spills into another row
-    span = float(us.max()) + 2 * max_du * max_g + 2.0
+    if slope is None:
+        shift = np.zeros(n)
+    else:
+        shift = np.asarray(slope, dtype=np.float64)
+        if shift.shape != uu.shape or not np.isfinite(shift).all():
+            raise SlitExtractionError(f"slope must be finite, of shape {uu.shape}")
+        shift = shift[order]
+    # key = row * span + u is sorted; span exceeds the u range plus the search tolerance and
+    # the windows' shift, so a search window never spills into another row
+    reach = 2 * (max_du + float(np.abs(shift).max(initial=0.0))) * max_g
+    span = float(us.max()) + reach + 2.0
     key = rs * span + us
-    comp, size, sum_u = _chains(key, us, span, float(max_du), max_g)
+    comp, size, sum_u = _chains(key, us, shift, span, float(max_du), max_g)
     keep = size >= min_length
     mean_u = sum_u / size
     kept = np.flatnonzero(keep)
@@ -87,10 +101,11 @@ def link_segments(
 
 
 @njit(cache=True)
-def _first_neighbour(key, span, max_du, max_g, sign):
+def _first_neighbour(key, lean, span, max_du, max_g, sign):
     """Per point of the sorted ``key`` (K,): index of the unique point within ``max_du * g``
-    px of its column in the first row g = 1 .. ``max_g`` away (``sign`` +1 below, -1 above)
-    that has any, -1 if none, -2 if ambiguous. The windows move monotonically with the key,
+    px of its column plus ``sign * lean * g`` (``lean`` (K,) px per row) in the first row
+    g = 1 .. ``max_g`` away (``sign`` +1 below, -1 above) that has any, -1 if none, -2 if
+    ambiguous. The windows move along the sorted key (back a little where the lean changes),
     so two pointers per g replace the binary searches (the same comparisons)."""
     n = key.size
     found = np.full(n, -1, np.int64)
@@ -100,13 +115,17 @@ def _first_neighbour(key, span, max_du, max_g, sign):
         lo = 0
         hi = 0
         for i in range(n):
-            centre = key[i] + shift
+            centre = key[i] + shift + sign * g * lean[i]
             a = centre - tol
             b = centre + tol
+            while lo > 0 and key[lo - 1] >= a:
+                lo -= 1
             while lo < n and key[lo] < a:  # searchsorted(key, a, "left")
                 lo += 1
             if hi < lo:
                 hi = lo
+            while hi > lo and key[hi - 1] > b:
+                hi -= 1
             while hi < n and key[hi] <= b:  # searchsorted(key, b, "right")
                 hi += 1
             if found[i] == -1 and hi > lo:
@@ -115,14 +134,14 @@ def _first_neighbour(key, span, max_du, max_g, sign):
 
 
 @njit(cache=True)
-def _chains(key, us, span, max_du, max_g):
+def _chains(key, us, lean, span, max_du, max_g):
     """Chain the points of the sorted ``key`` (K,): a point and the first candidate below it
     are linked where each is the other's unique candidate (:func:`link_segments`). Returns
     each point's chain (K,) int64, numbered in the order of the chains' first points, and
     each chain's size and sum of ``us`` (summed in point order)."""
     n = key.size
-    nxt = _first_neighbour(key, span, max_du, max_g, 1)
-    prv = _first_neighbour(key, span, max_du, max_g, -1)
+    nxt = _first_neighbour(key, lean, span, max_du, max_g, 1)
+    prv = _first_neighbour(key, lean, span, max_du, max_g, -1)
     comp = np.empty(n, np.int64)
     m = 0
     for i in range(n):  # a link goes to a later row: the predecessor has a lower index
@@ -138,3 +157,140 @@ def _chains(key, us, span, max_du, max_g):
         size[comp[i]] += 1
         sum_u[comp[i]] += us[i]
     return comp, size, sum_u
+
+
+#: A run of weak centres (found by the ridge response alone) at a segment's end, or a segment
+#: of weak centres only, is kept where it holds at least this many times ``min_length``
+#: points: the response's smoothing along the stripe reaches a few rows past a bright
+#: stripe's end, a dot's refill can leave a faint tail below one, and dots that happen to lie
+#: one above another make short faint streaks; a faint stripe runs on.
+WEAK_LENGTH_FACTOR = 3
+
+
+#: A weak centre between strong ones whose peak is below this fraction of theirs is no part of
+#: their stripe (:func:`settle_weak`).
+WEAK_GAP_FRACTION = 0.4
+
+
+def drop_short(segment: I64, min_length: int) -> I64:
+    """``segment`` (K,) int64 with -1 for the segments of fewer than ``min_length`` points."""
+    lk = segment >= 0
+    if not lk.any():
+        return segment
+    count = np.bincount(segment[lk])
+    return np.where(lk & (count[np.maximum(segment, 0)] >= min_length), segment, -1)
+
+
+def settle_weak(
+    along: NDArray[np.float64],
+    segment: I64,
+    strong: NDArray[np.bool_],
+    min_length: int,
+    weak_length: int | None = None,
+    peak: NDArray[np.float64] | None = None,
+) -> I64:
+    """The segments of linked centres some of which are weak (found by the ridge response
+    alone, :func:`~multislit.stripes.centres.find_ridge_centres_validated`).
+
+    In each segment, the weak centres before its first strong one and after its last are
+    dropped where they are fewer than ``weak_length`` (weak
+    centres between strong ones stay: the stripe runs on across them); a segment without a
+    strong centre is dropped where it is that short. The segments left with fewer than
+    ``min_length`` points are dropped too. With ``peak``, a weak centre is dropped where its
+    peak is below :data:`WEAK_GAP_FRACTION` times that of the strong ones next to it in its
+    segment (the lower of the two between strong ones): there the stripe is gone (a shadow, a
+    gap between two surfaces, its end), and the response's smoothing along the stripe
+    reaches on.
+
+    Parameters
+    ----------
+    along : (K,) float64, px, the centres' position along their segments (v for the rows)
+    segment : (K,) int64, segment id (-1: unlinked), e.g. :func:`link_segments` with
+        ``min_length`` 1
+    strong : (K,) bool
+    min_length : int
+    weak_length : int, default :data:`WEAK_LENGTH_FACTOR` times ``min_length``
+    peak : (K,) float64, the centres' peaks (intensity units), or None
+
+    Returns
+    -------
+    (K,) int64, segment ids (-1: dropped or unlinked; ids are not renumbered)
+    """
+    lk = np.flatnonzero(segment >= 0)
+    if lk.size == 0:
+        return segment
+    order = lk[np.lexsort((along[lk], segment[lk]))]
+    s = segment[order]
+    bounds = np.flatnonzero(np.r_[True, s[1:] != s[:-1], True])
+    lo, hi = bounds[:-1], bounds[1:]
+    n = hi - lo
+    pos = np.arange(order.size)
+    st = strong[order]
+    first = np.minimum.reduceat(np.where(st, pos, order.size), lo)
+    last = np.maximum.reduceat(np.where(st, pos, -1), lo)
+    has = last >= 0
+    if weak_length is None:
+        weak_length = WEAK_LENGTH_FACTOR * int(min_length)
+    cut_lead = has & (first - lo < weak_length)
+    cut_trail = has & (hi - 1 - last < weak_length)
+    k = np.repeat(np.arange(lo.size), n)
+    drop = (cut_lead[k] & (pos < first[k])) | (cut_trail[k] & (pos > last[k]))
+    drop |= ~has[k] & (n[k] < weak_length)
+    if peak is not None:
+        p = np.asarray(peak, np.float64)[order]
+        # the strong centres before and after each point in its segment
+        before = np.maximum.accumulate(np.where(st, pos, -1))
+        after = np.minimum.accumulate(np.where(st, pos, order.size)[::-1])[::-1]
+        b_in, a_in = before >= lo[k], after < hi[k]
+        pb = np.where(b_in, p[np.maximum(before, 0)], np.inf)
+        pa = np.where(a_in, p[np.minimum(after, order.size - 1)], np.inf)
+        # between strong centres the lower of the two; beyond the last (or before the first)
+        # strong one, that one's
+        flank = np.minimum(pb, pa)
+        drop |= ~st & (b_in | a_in) & (p < WEAK_GAP_FRACTION * flank)
+    out = segment.copy()
+    out[order[drop]] = -1
+    return drop_short(out, min_length)
+
+
+def link_weak(
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    strong: NDArray[np.bool_],
+    slope: NDArray[np.float64] | None,
+    peak: NDArray[np.float64] | None,
+    max_du: float,
+    max_gap: int,
+    min_length: int,
+) -> I64:
+    """:func:`link_segments` (along the stripes' ``slope``) of centres some of which are
+    weak, settled by :func:`settle_weak`; where that drops weak centres next to strong ones,
+    the rest is linked and settled again (the stripe is cut there). With every centre strong,
+    :func:`link_segments` itself.
+
+    Parameters
+    ----------
+    u, v : (K,) float64, px, the centres (v whole rows)
+    strong : (K,) bool
+    slope : (K,) float64, px per row, the stripes' lean at the centres, or None (upright)
+    peak : (K,) float64, the centres' peaks (intensity units), or None
+    max_du, max_gap, min_length : see :func:`link_segments`
+
+    Returns
+    -------
+    (K,) int64, segment ids (-1: none)
+    """
+    if strong.all():
+        return link_segments(u, v, max_du, max_gap, min_length, slope)
+    vv = np.asarray(v, np.float64)
+    seg = link_segments(u, v, max_du, max_gap, 1, slope)
+    settled = settle_weak(vv, seg, strong, min_length, peak=peak)
+    cut = (seg >= 0) & (settled < 0) & ~strong
+    if peak is None or not cut.any():
+        return settled
+    keep = ~cut
+    sl = None if slope is None else np.asarray(slope)[keep]
+    again = link_segments(np.asarray(u)[keep], vv[keep], max_du, max_gap, 1, sl)
+    out = np.full(vv.size, -1, np.int64)
+    out[keep] = settle_weak(vv[keep], again, strong[keep], min_length)
+    return out

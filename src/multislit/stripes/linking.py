@@ -18,11 +18,13 @@ from multislit.stripes.centres import (
     along_slits,
     estimate_noise,
     find_centres_validated,
+    find_ridge_centres_validated,
     texture_sigma,
 )
-from multislit.stripes.chains import DEFAULT_MIN_LENGTH, link_segments
+from multislit.stripes.chains import DEFAULT_MIN_LENGTH, link_weak
 from multislit.stripes.channels import resolve_channel
 from multislit.stripes.openings import remove_streaks
+from multislit.stripes.response import ridge_threshold
 from multislit.stripes.ridges import column_pass, merge_dots, merge_passes
 from multislit.stripes.separation import background_validated, separate_validated
 from multislit.stripes.sizes import (
@@ -145,17 +147,26 @@ def extract_slits(
 ) -> SlitExtraction:
     """Stripe centre points, their segments and the dot image of one camera image.
 
-    :func:`separate` -> :func:`find_stripe_centres` (threshold ``k_sigma`` times the highpass
-    noise, saturated runs from the image) -> :func:`link_segments`; the dot image is cleaned of
-    streaks by :func:`~multislit.stripes.openings.remove_streaks`. The same steps on the
-    transposed image find the stripes that lean towards the horizontal, column by column
-    (:func:`~multislit.stripes.ridges.column_pass`: maxima down to
-    :data:`~multislit.stripes.ridges.WEAK_FRACTION` of the threshold, linked column to column,
-    pieces that continue one another along the stripe joined, kept where at least
-    :data:`~multislit.stripes.ridges.MIN_LENGTH_FACTOR` times ``min_length`` columns long and
-    reaching the threshold somewhere); a stripe both passes found goes to the one along whose
-    direction it leans less (:func:`~multislit.stripes.ridges.merge_passes`). An image without
-    slits gives an empty result (zero-length arrays), not an error.
+    :func:`separate` -> the centres where the ridge response stands out
+    (:func:`~multislit.stripes.centres.find_ridge_centres_validated`: the slit image filtered
+    across the stripe at its width and integrated along it, above
+    :data:`~multislit.stripes.response.RIDGE_K_FRACTION` times ``k_sigma`` of the response's
+    noise; a centre is strong where a single pixel exceeds ``k_sigma`` times the highpass
+    noise, weak where the response alone shows it; saturated runs from the image) ->
+    :func:`~multislit.stripes.chains.link_segments` along the stripes' lean, the weak centres
+    settled by :func:`~multislit.stripes.chains.settle_weak` (weak runs at a segment's ends
+    and segments of weak centres only are kept where
+    :data:`~multislit.stripes.chains.WEAK_LENGTH_FACTOR` times ``min_length`` long; a weak
+    centre in no segment is dropped); the dot image is cleaned of streaks by
+    :func:`~multislit.stripes.openings.remove_streaks`. The same steps on the transposed
+    image find the stripes that lean towards the horizontal, column by column
+    (:func:`~multislit.stripes.ridges.column_pass`, where a quick look along the columns finds
+    them: linked column to column, pieces that continue one another along the stripe joined,
+    kept where at least :data:`~multislit.stripes.ridges.MIN_LENGTH_FACTOR` times
+    ``min_length`` columns long, strong somewhere and running through no stripes of the row
+    pass); a stripe both passes found goes to the one along whose direction it leans less
+    (:func:`~multislit.stripes.ridges.merge_passes`). An image without slits gives an empty
+    result (zero-length arrays), not an error.
 
     ``reject_texture`` is for photos (a board, a turntable, a textured object; JPEG): the
     row background is the row opening (``background="opening"`` of :func:`separate`, which
@@ -168,7 +179,9 @@ def extract_slits(
     and linked into a segment (continuing over rows). The simulator's images keep most of
     their linked centres in this mode; the default keeps the paper's row median. The photo
     mode keeps the row pass only: along the columns, a checkerboard's horizontal edges and
-    its squares' rows would pass for stripes.
+    its squares' rows would pass for stripes; and it takes the slit image's row maxima above
+    the threshold (:func:`~multislit.stripes.centres.find_stripe_centres`), not the ridge
+    response's, whose integration along a line would make stripes of texture.
 
     Parameters
     ----------
@@ -176,7 +189,9 @@ def extract_slits(
     stripe_width_px, dot_size_px : FWHMs (px); estimated from the image if None
     method : sub-pixel method, one of :data:`CENTRE_METHODS`
     k_sigma : detection threshold in noise sigmas (the noise is at least one quantisation
-        step of the data)
+        step of the data): a single pixel's, and (times
+        :data:`~multislit.stripes.response.RIDGE_K_FRACTION`, in sigmas of its own noise) the
+        ridge response's
     saturation_level : camera saturation value; default read from the data (flat tops piling
         up at the top of the histogram), else the dtype maximum for integer images
     v_smooth : rows (odd) averaged along the stripe for the sub-pixel fit
@@ -234,33 +249,63 @@ def extract_slits(
         bg = background_validated(img, sw, background)
         # dots from the same optics: fall back to the stripe
         ds = estimate_dot_size(cv2.subtract(img, bg)) or sw
-    hp, slits, sat, noise = separate_validated(img, sw, ds, saturation_level, background, bg)
+    hp, slits, sat, noise = separate_validated(
+        img, sw, ds, saturation_level, background, bg, keep_ends=not reject_texture
+    )
     dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(
         np.float32, copy=False
     )
     taps = smoothing_taps(v_smooth)
-    centres = find_centres_validated(slits, k_sigma * noise, method, sat, sw, taps, reject_texture)
+    if reject_texture:
+        centres = find_centres_validated(slits, k_sigma * noise, method, sat, sw, taps, True)
+        strong = np.ones(centres.u.size, bool)
+        slope = np.zeros(centres.u.size)
+    else:
+        centres, strong, slope = find_ridge_centres_validated(
+            slits,
+            k_sigma * noise,
+            ridge_threshold(k_sigma * noise, sw),
+            method,
+            sat,
+            sw,
+            taps,
+            image=img,
+        )
     if reject_texture:
         r = np.rint(centres.v).astype(np.intp)
         c = np.clip(np.rint(centres.u).astype(np.intp), 0, img.shape[1] - 1)
         keep = centres.peak >= TEXTURE_FRACTION * k_sigma * texture_sigma(slits, sw)[r, c]
         keep &= along_slits(slits, centres.u, centres.v, sw)
         centres = StripeCentres(*(a[keep] for a in centres))
+        strong, slope = strong[keep], slope[keep]
     link = {"max_du": max_du, "max_gap": max_gap, "min_length": min_length}
-    segment = link_segments(centres.u, centres.v, **link)
-    if reject_texture:  # a laser line continues over rows
-        linked = segment >= 0
+    segment = link_weak(centres.u, centres.v, strong, slope, centres.peak, **link)
+    # a laser line continues over rows (the photo mode); a weak centre counts in a segment only
+    linked = segment >= 0 if reject_texture else (segment >= 0) | strong
+    if not linked.all():
         centres = StripeCentres(*(a[linked] for a in centres))
-        segment = segment[linked]
+        segment, strong, slope = segment[linked], strong[linked], slope[linked]
     if reject_texture or not leaning:
         none = np.zeros(0, np.int64)
-        merged = merge_passes(centres, segment, _no_centres(), none, link, 0.0, (none, none))
+        merged = merge_passes(
+            centres, segment, _no_centres(), none, link, 0.0, (none, none), (strong, slope)
+        )
     else:
         thr = k_sigma * noise
         lk = segment >= 0
         rows = (centres.v[lk], centres.u[lk])  # the row pass's stripes, in the columns' frame
         cols = column_pass(img, sw, ds, thr, method, saturation_level, taps, link, rows)
-        merged = merge_passes(centres, segment, cols.centres, cols.segment, link, thr, rows)
+        merged = merge_passes(
+            centres,
+            segment,
+            cols.centres,
+            cols.segment,
+            link,
+            thr,
+            rows,
+            (strong, slope),
+            (cols.strong, cols.slope),
+        )
         c = merged.by_column
         dots = merge_dots(dots, cols.dots, merged.centres.u[c], merged.centres.v[c], sw)
     centres = merged.centres

@@ -56,8 +56,10 @@ class ExtractionOptions:
     method : {'gaussian', 'parabolic', 'centroid', 'steger'}
         The sub-pixel centre of each row's stripe. Default ``"gaussian"``.
     k_sigma : float, noise sigmas
-        Detection threshold: a stripe's peak must stand this many noise sigmas above the
-        background (the noise is at least one quantisation step of the data). Default 8.
+        Detection threshold: a stripe's peak stands this many noise sigmas above the
+        background (the noise is at least one quantisation step of the data), or the stripe
+        integrated along itself (the ridge response) stands 0.75 times as many sigmas of its
+        own noise above it. Default 8.
     min_length : int, rows
         The fewest centre points of a kept segment (twice as many for a stripe found along
         the columns). Default 10.

@@ -20,12 +20,16 @@ the image decimated :data:`_LEAN_DECIMATION` times, not 4 (:func:`~multislit.str
 lean_map`: dense stripes read far too upright on the coarser grid). Its centres lie at whole
 columns with a sub-pixel row. A stripe near the vertical is only a few columns wide: along a
 column it is no narrow ridge, and what maxima it leaves link over fewer columns than a
-segment needs. The extraction (:func:`~multislit.stripes.linking.extract_slits`) takes the
-maxima down to :data:`WEAK_FRACTION` of its threshold (such stripes are dim), links them
-column to column (``link_segments(v, u)``), joins the pieces that continue one another along
-the stripe (:func:`join_collinear`), and keeps the segments at least
-:data:`MIN_LENGTH_FACTOR` times as long as the row pass's that reach the whole threshold
-somewhere (:func:`drop_short`, :func:`strong_segments`).
+segment needs. Where the pass runs is found by a quick look along the columns
+(:func:`leaning_regions`: maxima down to :data:`WEAK_FRACTION` of the threshold). In each
+region its centres are the ridge response's, as in the row pass
+(:func:`~multislit.stripes.centres.find_ridge_centres_validated`: a matched filter across the
+stripe integrated along its lean, such stripes being dim); they are linked column to column
+along the stripes' lean (``link_segments(v, u, slope=...)``), the pieces that continue one
+another along the stripe are joined (:func:`join_collinear`), and the segments are kept that
+are at least :data:`MIN_LENGTH_FACTOR` times as long as the row pass's, that a single pixel
+shows above the threshold somewhere (:func:`strong_segments`) and through which no stripe of
+the row pass runs (:func:`through_row_stripes`).
 
 :func:`merge_passes` joins the two passes' points into one set in which each segment is one
 stripe piece found by one pass. Where both found one stripe (a stripe leaning 35-55 degrees is
@@ -49,9 +53,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit.stripes.centres import StripeCentres, find_centres_validated
-from multislit.stripes.chains import link_segments
+from multislit.stripes.centres import StripeCentres, find_ridge_centres_validated, row_maxima
+from multislit.stripes.chains import drop_short, link_segments, link_weak
 from multislit.stripes.openings import remove_streaks
+from multislit.stripes.response import ridge_threshold
 from multislit.stripes.separation import (
     row_opening_background,
     saturation_level_of,
@@ -72,9 +77,9 @@ _SAME_STRIPE_PX = 1.5
 #: The column pass's lean map reads the stripes' direction on the image decimated this many
 #: times (the row pass's 4 reads stripes as dense as those on a box top far too upright).
 _LEAN_DECIMATION = 2
-#: The column pass takes maxima down to this fraction of the detection threshold, and keeps
-#: the segments in which at least one reaches the whole threshold (:func:`strong_segments`):
-#: a stripe leaning far is dim (its surface is lit at a grazing angle: a stripe leaning 80
+#: The quick look of :func:`leaning_regions` takes maxima down to this fraction of the
+#: detection threshold (the pass keeps the segments in which a single pixel reaches the whole
+#: threshold, :func:`strong_segments`): a stripe leaning far is dim (its surface is lit at a grazing angle: a stripe leaning 80
 #: degrees, seen by a rig whose camera and projector stand side by side, lies on a surface the
 #: projector's light meets at 5 degrees or less), and its centres fade in and out around the
 #: threshold. Texture and a smooth background that the column's opening leaves behind (a
@@ -86,6 +91,13 @@ WEAK_FRACTION = 0.4
 #: 98 % of the column segments that lie on no stripe are shorter than 20 columns; the stripes
 #: on box tops run over 20-100 columns.
 MIN_LENGTH_FACTOR = 2
+#: A column-pass segment is dropped where it passes through this many stripes of the row pass
+#: (:func:`through_row_stripes`): the row-pass stripe has points this many rows above and below
+#: the crossing. Stripes do not cross: a run of maxima along a row through upright stripes is
+#: a horizontal edge or a row of dots, not a stripe (a leaning stripe meets upright ones where
+#: a surface turns, but ends there).
+_MAX_CROSSINGS = 1
+_CROSS_ROWS = 3
 #: The column pass runs on tiles of this many px where :func:`leaning_regions` finds a hint
 #: of a leaning stripe, and on their neighbours.
 _TILE = 32
@@ -114,12 +126,18 @@ class ColumnCentres:
         image, less its streaks (:func:`~multislit.stripes.openings.remove_streaks`); 0
         elsewhere
     regions : int, the regions the pass ran on (:func:`leaning_regions`)
+    strong : (K,) bool, the centres a single pixel shows above the threshold, not the ridge
+        response alone (:func:`~multislit.stripes.centres.find_ridge_centres_validated`)
+    slope : (K,) float64, the stripes' lean dv/du at the centres (rows per column; 0 where
+        they lie along the rows)
     """
 
     centres: StripeCentres
     segment: I64
     dots: F32
     regions: int
+    strong: NDArray[np.bool_]
+    slope: F64
 
 
 def leaning_regions(
@@ -153,14 +171,19 @@ def leaning_regions(
     hp = cv2.subtract(t, row_opening_background(t, stripe_width_px))
     if hp.dtype == np.float32:
         np.maximum(hp, 0, out=hp)
-    found = find_centres_validated(hp, threshold, "parabolic", np.zeros(hp.shape, bool), None)
+    # the maxima at whole pixels: only the tiles they fall in count
+    r, c = row_maxima(hp, threshold)
     # the transposed image's rows are the columns: linked column to column
     seg = link_segments(
-        found.u, found.v, link["max_du"], link["max_gap"], MIN_LENGTH_FACTOR * link["min_length"]
+        c.astype(np.float64),
+        r.astype(np.float64),
+        link["max_du"],
+        link["max_gap"],
+        MIN_LENGTH_FACTOR * link["min_length"],
     )
     lk = seg >= 0
     mark = np.zeros((th, tw), np.uint8)
-    mark[found.u[lk].astype(np.intp) // _TILE, found.v[lk].astype(np.intp) // _TILE] = 1
+    mark[c[lk] // _TILE, r[lk] // _TILE] = 1
     mark = cv2.dilate(mark, np.ones((3, 3), np.uint8))
     n, tiles = cv2.connectedComponents(mark, connectivity=8)
     boxes = []
@@ -210,19 +233,20 @@ def column_pass(
     ColumnCentres
     """
     h, w = img.shape
-    weak = WEAK_FRACTION * threshold
-    tiles, boxes = leaning_regions(img, stripe_width_px, weak, link)
+    tiles, boxes = leaning_regions(img, stripe_width_px, WEAK_FRACTION * threshold, link)
     dots = np.zeros((h, w), np.float32)
     if not boxes:
         e = np.empty(0)
-        return ColumnCentres(StripeCentres(e, e, e, e), np.empty(0, np.int64), dots, 0)
+        none = np.empty(0, np.int64)
+        return ColumnCentres(StripeCentres(e, e, e, e), none, dots, 0, np.zeros(0, bool), e)
+    ridge = ridge_threshold(threshold, stripe_width_px)
     level = saturation_level
     if level is None:  # the whole image's, not each crop's
         level = saturation_level_of(img)
     length = opening_length(dot_size_px)
     margin = _TILE + 2 * length
     region = tiles.repeat(_TILE, axis=0).repeat(_TILE, axis=1)[:h, :w]
-    parts = []
+    parts, strong, lean = [], [], []
     for k, (r0, r1, c0, c1) in enumerate(boxes, start=1):
         # rows a multiple of 8: the transposed crop's rows are read 8 px at a time
         a0, a1 = _widen8(max(0, r0 - margin), min(h, r1 + margin), h)
@@ -235,21 +259,28 @@ def column_pass(
             level,
             background="opening",
             lean_decimation=_LEAN_DECIMATION,
+            keep_ends=True,
         )
-        found = find_centres_validated(slits, weak, method, sat, stripe_width_px, taps)
+        found, firm, slope = find_ridge_centres_validated(
+            slits, threshold, ridge, method, sat, stripe_width_px, taps
+        )
         # the transposed crop's row is the column, its sub-pixel column the row
         u, v = found.v + b0, found.u + a0
         r = np.rint(v).astype(np.intp)
         inside = (r >= 0) & (r <= h - 1)
         inside[inside] = tiles[r[inside] // _TILE, u[inside].astype(np.intp) // _TILE] == k
         parts.append(StripeCentres(u[inside], v[inside], found.peak[inside], found.width[inside]))
+        strong.append(firm[inside])
+        lean.append(slope[inside])
         d = cv2.transpose(remove_streaks(cv2.subtract(hp, slits), length).astype(np.float32))
         own = region[a0:a1, b0:b1] == k
         np.copyto(dots[a0:a1, b0:b1], d, where=own)
     centres = StripeCentres(*(np.concatenate(x) for x in zip(*parts, strict=True)))
     order = np.lexsort((centres.v, centres.u))
     centres = StripeCentres(*(x[order] for x in centres))
-    return ColumnCentres(centres, link_columns(centres, link, threshold, barrier), dots, len(boxes))
+    firm, slope = np.concatenate(strong)[order], np.concatenate(lean)[order]
+    segment = link_columns(centres, firm, slope, link, barrier)
+    return ColumnCentres(centres, segment, dots, len(boxes), firm, slope)
 
 
 def _widen8(a0: int, a1: int, n: int) -> tuple[int, int]:
@@ -259,33 +290,65 @@ def _widen8(a0: int, a1: int, n: int) -> tuple[int, int]:
     return max(0, a1 - size), a1
 
 
-def link_columns(c: StripeCentres, link: dict, threshold: float, barrier: tuple[F64, F64]) -> I64:
+def link_columns(
+    c: StripeCentres,
+    strong: NDArray[np.bool_],
+    slope: F64 | None,
+    link: dict,
+    barrier: tuple[F64, F64],
+) -> I64:
     """The column pass's segments: its centres ``c`` linked column to column
-    (:func:`~multislit.stripes.chains.link_segments` with the row pass's ``link`` settings),
-    the pieces that continue one another along the stripe joined (:func:`join_collinear`,
-    across gaps of up to :data:`_JOIN_GAP` columns that no stripe of the row pass crosses:
-    ``barrier``, their (v, u)), kept where :data:`MIN_LENGTH_FACTOR` times ``min_length``
-    long and where a point's peak reaches ``threshold`` (:func:`strong_segments`).
+    (:func:`~multislit.stripes.chains.link_segments` with the row pass's ``link`` settings,
+    along the stripes' lean ``slope`` (K,) dv/du, None: along the rows), the pieces that
+    continue one another along the stripe joined (:func:`join_collinear`, across gaps of up to
+    :data:`_JOIN_GAP` columns that no stripe of the row pass crosses: ``barrier``, their
+    (v, u)), kept where :data:`MIN_LENGTH_FACTOR` times ``min_length`` long, where one of
+    their centres is strong (``strong``: a single pixel shows it, not the ridge response
+    alone; :func:`strong_segments`) and where no stripe of the row pass runs through them
+    (:func:`through_row_stripes`).
 
     Returns
     -------
     (K,) int64, segment ids (-1: none)
     """
-    seg = link_segments(c.v, c.u, link["max_du"], link["max_gap"], 1)
+    seg = link_segments(c.v, c.u, link["max_du"], link["max_gap"], 1, slope)
     seg = join_collinear(c.v, c.u, seg, _JOIN_GAP, _JOIN_TOL_PX, barrier)
     seg = drop_short(seg, MIN_LENGTH_FACTOR * link["min_length"])
-    return strong_segments(seg, c.peak, threshold)
+    seg = strong_segments(seg, strong)
+    return strong_segments(seg, through_row_stripes(c, barrier), at_most=_MAX_CROSSINGS - 1)
 
 
-def strong_segments(segment: I64, peak: F64, threshold: float) -> I64:
-    """``segment`` (K,) int64 with -1 for the segments none of whose points' ``peak`` (K,)
-    reaches ``threshold`` (intensity units)."""
+def strong_segments(segment: I64, strong: NDArray[np.bool_], at_most: int | None = None) -> I64:
+    """``segment`` (K,) int64 with -1 for the segments none of whose points is ``strong``
+    (K,); with ``at_most``, for those with more than that many ``strong`` points instead."""
     lk = segment >= 0
     if not lk.any():
         return segment
     n = int(segment.max()) + 1
-    strong = np.bincount(segment[lk], (peak[lk] >= threshold).astype(np.float64), n) > 0
-    return np.where(lk & strong[np.maximum(segment, 0)], segment, -1)
+    count = np.bincount(segment[lk], strong[lk].astype(np.float64), n)
+    ok = count > 0 if at_most is None else count <= at_most
+    return np.where(lk & ok[np.maximum(segment, 0)], segment, -1)
+
+
+def through_row_stripes(c: StripeCentres, barrier: tuple[F64, F64]) -> NDArray[np.bool_]:
+    """(K,) bool: which of the column pass's centres ``c`` (K,) a stripe of the row pass
+    (``barrier``: its linked (v, u), px) runs through: it has points within
+    :data:`_SAME_STRIPE_PX` along the row in the centre's row and :data:`_CROSS_ROWS` rows
+    above and below."""
+    bv, bu = (np.asarray(x, np.float64) for x in barrier)
+    if c.u.size == 0 or bv.size == 0:
+        return np.zeros(c.u.size, bool)
+    lo_u = min(float(bu.min()), float(c.u.min()))
+    span = max(float(bu.max()), float(c.u.max())) - lo_u + 4.0 * _SAME_STRIPE_PX + 2.0
+    key = np.sort(np.rint(bv) * span + (bu - lo_u))
+    rows, us = np.rint(c.v), c.u - lo_u
+    through = np.ones(c.u.size, bool)
+    for dr in (0, -_CROSS_ROWS, _CROSS_ROWS):
+        k = (rows + dr) * span + us
+        first = np.searchsorted(key, k - _SAME_STRIPE_PX, "left")
+        last = np.searchsorted(key, k + _SAME_STRIPE_PX, "right")
+        through &= last > first
+    return through
 
 
 def _end_lines(a: F64, b: F64, seg: I64, n: int, half: int) -> tuple:
@@ -428,15 +491,6 @@ def _unbarred(
     return i[keep], j[keep]
 
 
-def drop_short(segment: I64, min_length: int) -> I64:
-    """``segment`` (K,) int64 with -1 for the segments of fewer than ``min_length`` points."""
-    lk = segment >= 0
-    if not lk.any():
-        return segment
-    count = np.bincount(segment[lk])
-    return np.where(lk & (count[np.maximum(segment, 0)] >= min_length), segment, -1)
-
-
 def _local_slopes(a: F64, b: F64, segment: I64, half: int) -> F64:
     """(K,) float64: per linked point (``segment >= 0``), the slope da/db of the least-squares
     line through the points of its segment within ``half`` points of it along ``b``; NaN for
@@ -554,6 +608,8 @@ def merge_passes(
     link: dict,
     threshold: float,
     barrier: tuple[F64, F64],
+    row_weak: tuple[NDArray[np.bool_], F64] | None = None,
+    col_weak: tuple[NDArray[np.bool_], F64] | None = None,
 ) -> MergedCentres:
     """Join the row pass's and the column pass's points (see the module).
 
@@ -567,6 +623,13 @@ def merge_passes(
         link_segments`), the detection threshold and the row pass's linked (v, u): where the
         merge takes points out of a segment, the rest of each pass is linked again (the
         columns by :func:`link_columns`)
+    row_weak : ((K_r,) bool, (K_r,) float64), the row pass's strong centres and the stripes'
+        lean at them (:func:`~multislit.stripes.centres.find_ridge_centres_validated`; the
+        rows are linked again by :func:`~multislit.stripes.chains.link_weak`); default all
+        strong, upright
+    col_weak : ((K_c,) bool, (K_c,) float64), the same of the column pass
+        (:attr:`ColumnCentres.strong`, :attr:`ColumnCentres.slope`); default all strong, along
+        the rows
 
     Returns
     -------
@@ -575,6 +638,9 @@ def merge_passes(
     keep_c = col_segment >= 0
     cols = StripeCentres(*(x[keep_c] for x in cols))
     col_segment = col_segment[keep_c]
+    col_strong, col_slope = (
+        (keep_c[keep_c], None) if col_weak is None else (col_weak[0][keep_c], col_weak[1][keep_c])
+    )
     nr = rows.u.size
     u, v, by_col, seg, ang = _stacked(rows, row_segment, cols, col_segment)
     drop = np.zeros(u.size, bool)
@@ -591,10 +657,26 @@ def merge_passes(
         drop[nr + i[~to_cols]] = True
     if drop.any():
         row_keep, col_keep = ~drop[:nr], ~drop[nr:]
+        strong, slope = (
+            (row_keep[row_keep], None)
+            if row_weak is None
+            else (row_weak[0][row_keep], row_weak[1][row_keep])
+        )
+        row_segment = link_weak(
+            rows.u[row_keep], rows.v[row_keep], strong, slope, rows.peak[row_keep], **link
+        )
+        # a weak centre counts in a segment only
+        row_keep[row_keep] = (row_segment >= 0) | strong
+        row_segment = row_segment[(row_segment >= 0) | strong]
         rows = StripeCentres(*(x[row_keep] for x in rows))
         cols = StripeCentres(*(x[col_keep] for x in cols))
-        row_segment = link_segments(rows.u, rows.v, **link)
-        col_segment = link_columns(cols, link, threshold, barrier)
+        col_segment = link_columns(
+            cols,
+            col_strong[col_keep],
+            None if col_slope is None else col_slope[col_keep],
+            link,
+            barrier,
+        )
         linked = col_segment >= 0
         cols = StripeCentres(*(x[linked] for x in cols))
         col_segment = col_segment[linked]

@@ -328,14 +328,15 @@ def _run_edge(c, r, cur, prev, start, cols, starts, stops, k):
 
 
 @njit(cache=True)
-def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
+def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows):
     """:func:`fill_dots`'s refill of the vertical runs of dot pixels (``cols``, ``starts``,
     ``stops`` (K,) of :func:`_mask_runs_v`) in ``out`` (a copy of ``hp``): a run touching the
     image border or longer than ``lim`` rows takes the opening ``opened``; the others are
     interpolated between the clean pixels t rows above and n + 1 - t rows below, shifted
     sideways along the stripe by the run's slope (``slopes`` (K,) float32 px per row; (0,) for
-    straight above and below) and read by linear interpolation along their rows; ``rint``:
-    round, for integer images."""
+    straight above and below) and read by linear interpolation along their rows, no lower
+    than the opening within ``end_rows`` of a stripe's end (:func:`_blend`); ``rint``: round,
+    for integer images."""
     h, w = hp.shape
     for i in range(cols.size):
         c = cols[i]
@@ -351,7 +352,17 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
             above = np.float32(hp[start - 1, c])
             below = np.float32(hp[stop, c])
             for t in range(1, n + 1):
-                out[start + t - 1, c] = _blend(above, below, t / den, rint, hp[start + t - 1, c])
+                out[start + t - 1, c] = _blend(
+                    above,
+                    below,
+                    t / den,
+                    rint,
+                    hp[start + t - 1, c],
+                    opened[start + t - 1, c],
+                    t,
+                    n + 1,
+                    end_rows,
+                )
             continue
         s = float(slopes[i])
         reach = abs(s) * (n + 1)  # no sample lies further from column c (NaN: none inside)
@@ -360,21 +371,50 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim):
             for t in range(1, n + 1):
                 above = _row_interp_inside(hp, start - 1, float(c) - s * t)
                 below = _row_interp_inside(hp, stop, float(c) + s * (n + 1 - t))
-                out[start + t - 1, c] = _blend(above, below, t / den, rint, hp[start + t - 1, c])
+                out[start + t - 1, c] = _blend(
+                    above,
+                    below,
+                    t / den,
+                    rint,
+                    hp[start + t - 1, c],
+                    opened[start + t - 1, c],
+                    t,
+                    n + 1,
+                    end_rows,
+                )
             continue
         for t in range(1, n + 1):
             above = _row_interp(hp, start - 1, float(c) - s * t)
             below = _row_interp(hp, stop, float(c) + s * (n + 1 - t))
-            out[start + t - 1, c] = _blend(above, below, t / den, rint, hp[start + t - 1, c])
+            out[start + t - 1, c] = _blend(
+                above,
+                below,
+                t / den,
+                rint,
+                hp[start + t - 1, c],
+                opened[start + t - 1, c],
+                t,
+                n + 1,
+                end_rows,
+            )
 
 
 @njit(cache=True, inline="always")
-def _blend(above, below, frac, rint, here):
-    """A refilled dot pixel of :func:`_fill_runs`: ``above`` + (``below`` - ``above``) (in
-    float32) times ``frac``, rounded where ``rint``, and no brighter than the pixel ``here``."""
+def _blend(above, below, frac, rint, here, floor, t, n1, end_rows):
+    """A refilled dot pixel of :func:`_fill_runs`, ``t`` rows below the sample ``above`` and
+    ``n1`` - ``t`` above ``below``: ``above`` + (``below`` - ``above``) (in float32) times
+    ``frac``, rounded where ``rint``, no darker than the opening ``floor`` where one sample
+    reaches half of it and the other does not (a stripe's end) and the pixel is at most
+    ``end_rows`` from the one that does, and no brighter than the pixel ``here``."""
     val = float(above) + float(np.float32(below - above)) * frac
     if rint:
         val = np.rint(val)
+    if end_rows > 0:
+        a, b, f = float(above), float(below), float(floor)
+        if (2.0 * a >= f > 2.0 * b and t <= end_rows) or (
+            2.0 * b >= f > 2.0 * a and n1 - t <= end_rows
+        ):
+            val = max(val, f)
     return min(val, float(here))
 
 
@@ -391,7 +431,12 @@ def dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
 
 
 def _fill(
-    hp: NDArray, opened: NDArray, tau: float, length: int, slope: NDArray | float | None
+    hp: NDArray,
+    opened: NDArray,
+    tau: float,
+    length: int,
+    slope: NDArray | float | None,
+    keep_ends: bool = False,
 ) -> NDArray:
     """:func:`fill_dots`; ``slope`` the slope image, None (straight above and below) or the
     integration scale (px, float) of the structure tensor that gives the slope where a run
@@ -415,7 +460,8 @@ def _fill(
         else:
             slopes[inner] = _slopes_at(hp, slope, mids, cols[inner])
     rint = bool(np.issubdtype(hp.dtype, np.integer))
-    _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim)
+    end_rows = int(length) // 2 if keep_ends else 0
+    _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows)
     return out
 
 
@@ -425,6 +471,7 @@ def fill_dots(
     tau: float,
     length: int,
     slope: NDArray | None = None,
+    keep_ends: bool = False,
 ) -> NDArray:
     """Slit image: ``hp`` with the dot pixels refilled by interpolation along the stripe.
 
@@ -439,6 +486,14 @@ def fill_dots(
     leaning stripe the speckle peaks along it are flagged too, and vertical interpolation would
     cut its core out).
     Runs longer than 2 ``length`` or touching the image border keep the opened value.
+    With ``keep_ends``, where one of the two samples lies on a stripe (at least half the
+    opening at the pixel) and the other does not, the interpolation is taken no lower than
+    the opening over half the line's length from the stripe's side: near a stripe's end the
+    sample beyond it is background, and the ramp down to it would cut the stripe's last rows
+    out (the opening, a line of ``length`` px inside the stripe, keeps them; a dot is shorter
+    than the line); between two background samples (dots one above another off the stripes,
+    whose opening the line fits inside) it is not; and no further (where the stripe meets
+    another one at an occlusion, its end kept whole would bridge the gap between them).
     The result is clipped to ``hp`` so that ``hp - slits >= 0``. One compiled pass over the
     dot mask.
 
@@ -454,7 +509,8 @@ def fill_dots(
     -------
     (H, W) slit image, dtype of ``hp``
     """
-    return _fill(hp, opened, tau, length, None if slope is None else np.asarray(slope, np.float32))
+    sl = None if slope is None else np.asarray(slope, np.float32)
+    return _fill(hp, opened, tau, length, sl, keep_ends)
 
 
 #: Background estimators of :func:`separate`; the first is the default.
@@ -504,12 +560,14 @@ def separate_validated(
     background: str = "median",
     bg: NDArray | None = None,
     lean_decimation: int = LEAN_DECIMATION,
+    keep_ends: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray, float]:
     """Core of :func:`separate` on a validated image, native dtype (exact integer arithmetic).
 
     ``bg``: the row background (:func:`background_validated`) if already made;
     ``lean_decimation``: the cell (px) of the lean map the opening follows the stripes by
-    (:func:`~multislit.stripes.openings.stripe_opening`).
+    (:func:`~multislit.stripes.openings.stripe_opening`); ``keep_ends``: the refill keeps the
+    stripes' ends (:func:`fill_dots`).
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
     if bg is None:
@@ -524,7 +582,7 @@ def separate_validated(
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)
-    slits = _fill(hp, opened, 3.0 * noise, length, slope_sigma(length))
+    slits = _fill(hp, opened, 3.0 * noise, length, slope_sigma(length), keep_ends)
     level = _saturation_level(img, saturation_level)
     if level is None:
         sat = np.zeros(img.shape, bool)
