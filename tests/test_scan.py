@@ -88,7 +88,9 @@ def test_holes_half_size(cap_dir, scans, truth):
         near = [h for h in hm.measurable if np.linalg.norm(h.centre - c) < tr["diameter"] / 4]
         if near:
             got[tr["diameter"]] = near[0]
-    # tolerance at half size (640x512): 100 mm within 1.0 mm, 50 mm within 1.5 mm
+    # both holes measured (the summary says why not), at half size (640x512): 100 mm within
+    # 1.0 mm, 50 mm within 1.5 mm
+    assert 100.0 in got and 50.0 in got, hm.summary()
     assert abs(got[100.0].diameter - 100.0) < 1.0
     assert abs(got[50.0].diameter - 50.0) < 1.5
     assert got[100.0].n_slits >= 3 and got[50.0].n_slits >= 3
