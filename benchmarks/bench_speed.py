@@ -25,8 +25,8 @@ Where the time goes: the functions that take the most time of their own (cProfil
 tottime, ms per frame; a compiled kernel counts as one function, OpenCV calls by name) over one
 more run of the pipeline on every scan, profiled apart from the timed runs.
 
-Compiled kernels (Numba) are loaded or compiled before timing: every frame runs once,
-untimed, first.
+Compiled kernels (Numba) are loaded or compiled before timing (``multislit.compile_kernels``),
+and every frame runs once, untimed, first.
 
 Run:  .venv/bin/python benchmarks/bench_speed.py [--slits 25 49] [--repeat 5] [--write]
 (OpenCV is pinned to one thread and the BLAS behind NumPy and Numba too -- the script
@@ -56,6 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results import command_line, write_section  # noqa: E402
 
+from multislit import compile_kernels  # noqa: E402
 from multislit.calibrate import calibrate_capture  # noqa: E402
 from multislit.identify import IdentifyOptions, identify, prepare_reference  # noqa: E402
 from multislit.io import Capture  # noqa: E402
@@ -275,6 +276,7 @@ def main() -> None:
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
     cv2.setNumThreads(1)
+    compile_kernels()
     rows, preps = [], []
     with tempfile.TemporaryDirectory() as d:
         for n in args.slits:
