@@ -13,7 +13,7 @@ $(BIN)/activate: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test,figures]'
-	$(BIN)/python -c "import multislit.stripes as s, multislit.identify as i; s.compile_kernels(); i.compile_kernels()"  # Numba, cached on disk
+	$(BIN)/python -c "import multislit; multislit.compile_kernels()"  # Numba, cached on disk
 	touch $(BIN)/activate
 
 demo: $(BIN)/activate

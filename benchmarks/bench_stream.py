@@ -6,8 +6,9 @@ A capture of the default rig (25 slits) is simulated and calibrated (hand readin
 run writes the PLY files and ``frames.jsonl`` of an OUT folder, as the commands do. "frames per
 second" counts from the first frame read to the last frame written (worker start-up included);
 "after the first frame" from the first frame written to the last (start-up left out); "wall" is
-the whole call, with the reference preparation (once per run) and the cluster's start. One
-frame is scanned before the runs, so that code Numba compiles is cached for every process.
+the whole call, with the reference preparation (once per run) and the cluster's start. The
+package's kernels are compiled before the runs (``multislit.compile_kernels``), so that Numba's
+cache holds them for every process; each worker loads them as it starts.
 
 Run:  .venv/bin/python benchmarks/bench_stream.py [--scale 0.5] [--frames 24] [--no-write]
 """
@@ -26,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results import command_line, write_section  # noqa: E402
 
+from multislit import compile_kernels  # noqa: E402
 from multislit.app.batch import batch  # noqa: E402
 from multislit.app.stream import stream  # noqa: E402
 from multislit.calibrate import calibrate_capture, write_calibration  # noqa: E402
@@ -51,8 +53,8 @@ def main() -> None:
         for i in range(args.frames):
             name = SCENES[i % len(SCENES)]
             shutil.copy(cap / "scans" / f"{name}.png", frames / f"f{i:04d}_{name}.png")
-        # one frame first, so that compiled code is in Numba's cache for the workers too
-        stream(cap, frames, work / "warm-up", max_frames=1)
+        # compiled code in Numba's cache first, for the workers too (each loads it as it starts)
+        compile_kernels()
         rows = []
         stamps: list[float] = []
 

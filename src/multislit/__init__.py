@@ -16,10 +16,13 @@ The subpackages follow the data: :mod:`multislit.io` (capture folders, PLY),
 lines, slit addresses by the dots), :mod:`multislit.reconstruct` (triangulation, scans),
 :mod:`multislit.measure` (holes, VDI/VDE 2634 figures); :mod:`multislit.calibrate`,
 :mod:`multislit.geometry` and :mod:`multislit.sim` (the rig simulator) beside them.
+:func:`compile_kernels` compiles every compiled (Numba) kernel of the package before the first
+frame.
 """
 
 __version__ = "0.1.0"
 
+from multislit import calibrate, identify, reconstruct, stripes
 from multislit.calibrate import Calibration, calibrate_capture, write_calibration
 from multislit.errors import MultislitError
 from multislit.identify import capture_reference, prepare_reference
@@ -36,6 +39,7 @@ __all__ = [
     "ScanOptions",
     "calibrate_capture",
     "capture_reference",
+    "compile_kernels",
     "measure_holes",
     "prepare_reference",
     "read_ply",
@@ -45,3 +49,19 @@ __all__ = [
     "write_calibration",
     "write_ply",
 ]
+
+
+def compile_kernels() -> None:
+    """Compile every Numba kernel of the package now, or load it from Numba's disk cache.
+
+    Numba compiles a kernel on its first call (seconds for the package's pipeline) and caches
+    the machine code beside the package, so only the first run after an install pays that;
+    after this call the first frame costs what the others do. It runs each stage package's
+    warm-up (:mod:`~multislit.stripes`: the extraction, the dots and the refinement;
+    :mod:`~multislit.identify`: both identification methods and the reference;
+    :mod:`~multislit.reconstruct`: the triangulation; :mod:`~multislit.calibrate`: the
+    reference boards' dots and the slits' order), each on small synthetic images. A second
+    call is quick: the warm-ups run again on their small images, nothing is compiled.
+    """
+    for stage in (stripes, identify, reconstruct, calibrate):
+        stage.compile_kernels()

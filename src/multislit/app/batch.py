@@ -25,6 +25,7 @@ from typing import Any
 
 from numpy.typing import NDArray
 
+from multislit import compile_kernels
 from multislit.app.stream import (
     FrameResult,
     FrameWriter,
@@ -272,6 +273,7 @@ def batch(
             client = distributed.Client(cluster)
             if processes:
                 client.run(_one_thread)  # a core per worker process
+        client.run(compile_kernels)  # each worker's compiled kernels before its first frame
         ref = capture_reference(cap)
         return run_frames(
             src,

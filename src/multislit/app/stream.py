@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit import __version__
+from multislit import __version__, compile_kernels
 from multislit.app.index import INDEX_FILE, RUN_FILE, RUN_FORMAT, frame_file, picture_file
 from multislit.app.pictures import encode_png, scan_picture
 from multislit.calibrate import Calibration
@@ -325,6 +325,7 @@ class InlineRunner:
         self.reference, self.calibration, self.prior = reference, calibration, bool(prior)
         self.pictures, self.options = bool(pictures), options
         self._last: ScanResult | None = None
+        compile_kernels()  # loaded before the first frame, which then costs what the others do
 
     def submit(self, image: NDArray, name: str) -> FrameResult:
         res, ms = _timed_scan(
@@ -373,6 +374,7 @@ def _init_worker(
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     threading.Thread(target=_watch_parent, args=(parent,), name="parent", daemon=True).start()
     cv2.setNumThreads(1)  # a core per worker process: the processes are the parallelism
+    compile_kernels()  # loaded before the first frame, which then costs what the others do
     _WORKER["reference"], _WORKER["calibration"] = reference, calibration
     _WORKER["pictures"], _WORKER["options"] = pictures, options
 

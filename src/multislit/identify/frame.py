@@ -139,8 +139,8 @@ def compile_kernels() -> None:
     """Compile the identification's Numba kernels now, both methods'.
 
     Numba compiles each kernel on first use (seconds) and caches the machine code on disk
-    beside the package, so only the first run after an install pays it. ``make demo`` and
-    ``make test`` call this once after installing. The template matching's kernels
+    beside the package, so only the first run after an install pays it;
+    :func:`multislit.compile_kernels` calls this with the other stages' warm-ups. The template matching's kernels
     (:func:`~multislit.identify.labelling.compile_kernels`), then the identification by the
     dots' geometry on the frames of :func:`synthetic_rig`.
     """

@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import IdentificationError
 from multislit.identify.matching import score_candidates, template_geometry, template_size
+from multislit.identify.patches import compile_kernels as compile_patch_kernels
 from multislit.identify.prior import check_previous, scores_with_prior
 from multislit.identify.reference import ReferenceSet
 from multislit.identify.result import Identification
@@ -320,8 +321,6 @@ def compile_kernels() -> None:
     the reference preparation's patch sampler
     (:func:`~multislit.identify.patches.compile_kernels`).
     """
-    from multislit.identify.patches import compile_kernels as compile_patch_kernels
-
     compile_patch_kernels()
     reference, images, _, _ = synthetic_frame()
     for image in images:

@@ -11,6 +11,7 @@ from multislit.reconstruct.scan import (
     scan_image_for_holes,
 )
 from multislit.reconstruct.triangulation import (
+    compile_kernels,
     triangulate,
     triangulate_matrix,
 )
@@ -27,4 +28,5 @@ __all__ = [
     "load_capture_calibration",
     "scan_capture",
     "rig_of",
+    "compile_kernels",
 ]

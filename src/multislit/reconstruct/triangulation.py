@@ -240,3 +240,19 @@ def _pinhole_points(intr, dist, R, centre, planes, uv, slit, min_cos, pts, valid
         if math.isfinite(X) and math.isfinite(Y) and math.isfinite(Z):
             pts[i, 0], pts[i, 1], pts[i, 2] = X, Y, Z
             valid[i] = True
+
+
+def compile_kernels() -> None:
+    """Compile the triangulation's Numba kernel now: :func:`triangulate` with a pinhole
+    camera (with and without lens distortion), a point in front of the camera and one left
+    out.
+
+    Numba compiles it on first use and caches the machine code on disk beside the package;
+    :func:`multislit.compile_kernels` calls this with the other stages' warm-ups.
+    """
+    planes = np.array([[1.0, 0.0, 0.0, -10.0]])
+    uv = np.array([[700.0, 500.0], [600.0, 500.0]])
+    slit = np.array([0, -1])
+    for dist in ((0.0, 0.0, 0.0, 0.0), (-0.1, 0.01, 0.0, 0.0, 0.001)):
+        camera = PinholeCamera(1000.0, 1000.0, 640.0, 512.0, tvec=(0.0, 0.0, 500.0), dist=dist)
+        triangulate(camera, planes, uv, slit)

@@ -59,9 +59,11 @@ from multislit.stripes.centres import (
 )
 from multislit.stripes.chains import DEFAULT_MIN_LENGTH, link_segments
 from multislit.stripes.channels import choose_channel, resolve_channel
+from multislit.stripes.dots import centre_dots, find_dots
 from multislit.stripes.linking import SlitExtraction, extract_slits
 from multislit.stripes.openings import (
     STREAK_ANGLES_DEG,
+    follow_stripe_opening,
     line_kernel,
     remove_streaks,
     vertical_opening,
@@ -74,9 +76,11 @@ from multislit.stripes.refine import (
     refine_slit_image,
 )
 from multislit.stripes.refine import compile_kernels as _compile_refine_kernels
+from multislit.stripes.response import lean_slopes, ridge_response, wide_centres
 from multislit.stripes.separation import (
     BACKGROUNDS,
     Separation,
+    fill_dots,
     row_median_background,
     row_opening_background,
     separate,
@@ -148,17 +152,14 @@ __all__ = [
 
 
 def compile_kernels() -> None:
-    """Compile the package's Numba kernels now: the refinement's and the extraction's.
+    """Compile the package's Numba kernels now: the extraction's (every centre method), the
+    refinement's and the dots' (found, centred as spots).
 
     Numba compiles each kernel on first use and caches the machine code on disk beside the
-    package, so only the first run after an install pays it. ``make demo`` and ``make test``
-    call this once after installing. The extraction is run on small uint8, uint16 and
-    float32 images (each pixel type has its own machine code).
+    package, so only the first run after an install pays it; :func:`multislit.compile_kernels`
+    calls this with the other stages' warm-ups. The extraction is run on small uint8, uint16
+    and float32 images (each pixel type has its own machine code).
     """
-    from multislit.stripes.openings import follow_stripe_opening
-    from multislit.stripes.response import lean_slopes, ridge_response, wide_centres
-    from multislit.stripes.separation import fill_dots
-
     _compile_refine_kernels()
     img = np.zeros((48, 48), np.uint8)
     img[:, 22:26] = 200
@@ -168,9 +169,27 @@ def compile_kernels() -> None:
         extract_slits(x, 4.0, 2.0)
         extract_slits(x)
         extract_slits(x, 4.0, 2.0, reject_texture=True)
+        for method in CENTRE_METHODS:
+            extract_slits(x, 4.0, 2.0, method=method, leaning=False)
         fill_dots(x, vertical_opening(x, 5), 1.0, 5)
         fill_dots(x, vertical_opening(x, 5), 1.0, 5, stripe_slope(x, 2.5))
         follow_stripe_opening(x, vertical_opening(x, 5), 5, np.full((12, 12), 30.0), 4, 0.0)
         ridge_response(x, 4.0, np.full((12, 12), 0.5, np.float32))  # along a leaning stripe
         lean_slopes(x, 4.0)
         wide_centres(x, 2.0, np.array([20]), np.array([23]), np.zeros(1))
+    _compile_dot_kernels()
+
+
+def _compile_dot_kernels() -> None:
+    """The dots' kernels: a stripe with dots beside it, its dots found and centred as spots
+    (:func:`~multislit.stripes.dots.centre_dots`, with a fitted and a given spot sigma)."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:96, 0:96].astype(np.float64)
+    img = 10.0 + 180.0 * np.exp(-0.5 * ((xx - 47.5) / 1.5) ** 2)
+    for cu, cv in rng.uniform(8.0, 88.0, size=(40, 2)):
+        img += 90.0 * np.exp(-0.5 * ((xx - cu) ** 2 + (yy - cv) ** 2) / 1.1**2)
+    img += rng.normal(0.0, 1.0, img.shape)
+    ex = extract_slits(np.clip(img, 0, 255).astype(np.uint8), 4.0, 2.6)
+    found = find_dots(ex.dots, ex.noise_sigma, ex.dot_size_px)
+    for spot_sigma in (None, 1.1):
+        centre_dots(ex, found.u, found.v, np.zeros(len(found.u)), spot_sigma)

@@ -255,20 +255,6 @@ def response_at(smoothed, u, v, su, sv, reach):
     return a - level, level
 
 
-@njit(cache=True, inline="always")
-def level_bin(edges, x):
-    """The bin of ``x`` among the ``edges`` (B + 1,) ascending: 0 .. B - 1 (clipped)."""
-    lo = 0
-    hi = len(edges) - 2
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if x >= edges[mid]:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
 @njit(cache=True)
 def _responses(smoothed, u, v, su, sv, reach, out, level):
     for i in range(len(u)):

@@ -947,8 +947,8 @@ def compile_kernels() -> None:
     """Compile the refinement's and the row median's Numba kernels now.
 
     Numba compiles them on first use (about 20 s) and caches the machine code on disk beside
-    the package, so only the first refinement after an install pays it. ``make demo`` and
-    ``make test`` call this once after installing.
+    the package, so only the first refinement after an install pays it;
+    :func:`multislit.stripes.compile_kernels` calls this.
     """
     img = np.zeros((48, 48), np.uint8)
     img[:, 22:26] = 200
