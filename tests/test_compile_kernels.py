@@ -20,6 +20,7 @@ import subprocess
 import sys
 import types
 
+import pytest
 from numba.core.dispatcher import Dispatcher
 
 import multislit as ms
@@ -161,6 +162,7 @@ sys.exit(1 if left else 0)
 """
 
 
+@pytest.mark.slow  # a fresh interpreter compiles every kernel
 def test_compile_kernels_warms_every_kernel() -> None:
     tests = os.path.dirname(os.path.abspath(__file__))
     run = subprocess.run(

@@ -99,6 +99,7 @@ except ms.MultislitError as exc:
 """
 
 
+@pytest.mark.slow  # two fresh interpreters
 def test_read_ply_of_a_device_or_fifo_is_refused_at_once(tmp_path):
     """/dev/zero would be read until memory runs out, a FIFO waited on for ever (each tried in
     a process of its own, with a memory limit and a timeout)."""
