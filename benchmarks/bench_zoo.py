@@ -5,9 +5,13 @@ the capture (or reuses it from ``--keep``); the capture is calibrated
 (:func:`multislit.calibrate.calibrate_capture`: the camera, the slit planes and the dot
 projector); every scan is identified by each method (``--method``: the dots' geometry, the
 paper's template matching, or both). Per scene and method it prints the object coverage (true
-stripe-centre pixels on the objects with a point of the right slit), the share of points on
-the objects with a wrong slit (all, and at confidence >= 0.5), where the objects' pixels are
-lost, the same coverage and wrong share on the backdrop, and the time.
+stripe-centre pixels on the objects with a point of the right slit) of the resolvable centres
+(where the stripe stands at least ``RESOLVABLE_SNR`` noise sigmas out of the pixel's noise, by
+the truth's ``stripe_snr``) and of all, the share of points on the objects with a wrong slit
+(all, and at confidence >= 0.5), the share of the objects' centres too faint to resolve and
+where the resolvable ones are lost, the backdrop's resolvable coverage and wrong share, and the
+time; then, per method, how many scenes meet the goals (resolvable object coverage >= 90 %,
+wrong <= 0.2 %, <= 0.1 % at confidence >= 0.5; backdrop >= 95 % and <= 0.1 % wrong).
 
 Seeds: 0-99 are tuning seeds (look at them while developing); 1000 and above are held out
 (report on them, never tune on them). ``--held-out N`` runs seeds 1000, 1001, ...; seeds of
@@ -32,7 +36,7 @@ from multislit.errors import MultislitError
 from multislit.identify import METHODS, IdentifyOptions, identify, prepare_reference
 from multislit.io import Capture
 from multislit.reconstruct import rig_of
-from multislit.sim import coverage_losses, object_metrics, simulate_zoo_capture
+from multislit.sim import RESOLVABLE_SNR, coverage_losses, object_metrics, simulate_zoo_capture
 
 TUNING_SEEDS = (0, 1, 2)
 HELD_OUT_START = 1000
@@ -79,10 +83,34 @@ def _capture(folder: Path, seed: int, size: tuple[int, int], scenes: int) -> Cap
     return Capture.open(simulate_zoo_capture(folder, seed, scenes=scenes, max_size=size))
 
 
+def _goals(rows: list[tuple[str, dict, dict]]) -> list[str]:
+    """Per method, the scenes that meet each goal, from (method, object, backdrop) scores."""
+    out = []
+    for method in dict.fromkeys(m for m, _, _ in rows):
+        got = [(o, b) for m, o, b in rows if m == method]
+        cov = np.array([100 * o["coverage_resolvable"] for o, _ in got])
+        wrong = np.array([100 * o["wrong"] for o, _ in got])
+        sure = np.array([100 * o["wrong_confident"] for o, _ in got])
+        bcov = np.array([100 * b["coverage_resolvable"] for _, b in got])
+        bwrong = np.array([100 * b["wrong"] for _, b in got])
+        n = len(got)
+        out.append(
+            f"- {method}, {n} scenes: resolvable object coverage {cov.min():.1f}-{cov.max():.1f} "
+            f"% (mean {cov.mean():.1f} %), >= 90 % on {(cov >= 90).sum()}; object wrong "
+            f"{wrong.min():.2f}-{wrong.max():.2f} % (mean {wrong.mean():.2f} %), <= 0.2 % on "
+            f"{(wrong <= 0.2).sum()}, <= 0.1 % at confidence >= 0.5 on {(sure <= 0.1).sum()}; "
+            f"backdrop >= 95 % on {(bcov >= 95).sum()}, <= 0.1 % wrong on "
+            f"{(bwrong <= 0.1).sum()}; every goal on "
+            f"{((cov >= 90) & (wrong <= 0.2) & (sure <= 0.1) & (bcov >= 95) & (bwrong <= 0.1)).sum()}"
+        )
+    return out
+
+
 def run_seed(
-    seed: int, folder: Path, size: tuple[int, int], scenes: int, methods: list[str]
+    seed: int, folder: Path, size: tuple[int, int], scenes: int, methods: list[str], rows: list
 ) -> list[str]:
-    """Simulate (or reuse), calibrate and identify one zoo seed; print its lines, return them."""
+    """Simulate (or reuse), calibrate and identify one zoo seed; print its lines, return them;
+    each scene's (method, object scores, backdrop scores) appended to ``rows``."""
     cap = _capture(folder, seed, size, scenes)
     res, why = _calibrate(cap)
     summary = _calibration_summary(res) if res is not None else why
@@ -95,14 +123,20 @@ def run_seed(
     if res is not None and res.calibration.dot_projector is not None:
         rig = rig_of(res.calibration)
     lines += [
-        "| seed | scene | method | object coverage | object wrong | object wrong, conf >= 0.5 | "
-        "objects lost: no centre / unidentified / left out | backdrop coverage | "
-        "backdrop wrong | ms |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| seed | scene | method | object coverage, resolvable / all | object wrong | "
+        "object wrong, conf >= 0.5 | objects' centres faint | resolvable lost: no centre / "
+        "unidentified / left out | backdrop coverage, resolvable | backdrop wrong | ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for p in cap.scans:
         img = cap.image(p)
         truth = np.load(cap.root / "truth" / f"{p.stem}.npz")
+        if "stripe_snr" not in truth:
+            raise SystemExit(
+                f"{folder}: its truth has no stripe_snr (simulated by an older version); "
+                "remove the folder to simulate it again"
+            )
+        snr = truth["stripe_snr"]
         for method in methods:
             cells = f"| {seed} | {p.stem} | {method} |"
             try:
@@ -110,18 +144,21 @@ def run_seed(
                 ident = identify(img, ref, rig, options=IdentifyOptions(method=method))
                 dt = time.perf_counter() - t
             except MultislitError as exc:
-                lines.append(cells + f" not run: {str(exc)[:100]} | | | | | | |")
+                lines.append(cells + f" not run: {str(exc)[:100]} | | | | | | | |")
                 print(lines[-1], flush=True)
                 continue
-            m = object_metrics(ident, truth["slit"], truth["object"])
+            m = object_metrics(ident, truth["slit"], truth["object"], snr)
             o, b = m["object"], m["backdrop"]
-            lost = coverage_losses(ident, truth["slit"], mask=truth["object"])
-            share = {k: 100 * n / max(1, sum(lost.values())) for k, n in lost.items()}
+            rows.append((method, o, b))
+            seen = truth["object"] & (snr >= RESOLVABLE_SNR)
+            lost = coverage_losses(ident, truth["slit"], mask=seen)
+            faint = 100 * (1 - o["centres_resolvable"] / max(1, o["centres"]))
             lines.append(
-                cells + f" {100 * o['coverage']:.1f} % | {100 * o['wrong']:.2f} % | "
-                f"{100 * o['wrong_confident']:.2f} % | {share['no_centre']:.1f} / "
-                f"{share['segment_unidentified']:.1f} / {share['point_left_out']:.1f} % | "
-                f"{100 * b['coverage']:.1f} % | {100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
+                cells + f" {100 * o['coverage_resolvable']:.1f} / {100 * o['coverage']:.1f} % | "
+                f"{100 * o['wrong']:.2f} % | {100 * o['wrong_confident']:.2f} % | {faint:.1f} % | "
+                f"{100 * lost['no_centre']:.1f} / {100 * lost['segment_unidentified']:.1f} / "
+                f"{100 * lost['point_left_out']:.1f} % | {100 * b['coverage_resolvable']:.1f} % | "
+                f"{100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
             )
             print(lines[-1], flush=True)
     return lines + [""]
@@ -177,12 +214,18 @@ def main() -> None:
         lines = [
             f"Images at most {args.size[0]}x{args.size[1]} px, {args.scenes} scenes per seed; "
             f"{'held-out' if held_out else 'tuning'} seeds {seeds}. Coverage: true "
-            "stripe-centre pixels with a point of the right slit; wrong: shares of the points.",
+            "stripe-centre pixels with a point of the right slit (resolvable: the stripe stands "
+            f"at least {RESOLVABLE_SNR:g} noise sigmas out of the pixel's noise; faint: the "
+            "others); wrong: shares of the points.",
             "",
         ]
+        rows: list = []
         for seed in seeds:
             folder = root / f"zoo_{seed}_{args.size[0]}x{args.size[1]}_{args.scenes}"
-            lines += run_seed(seed, folder, tuple(args.size), args.scenes, args.method)
+            lines += run_seed(seed, folder, tuple(args.size), args.scenes, args.method, rows)
+        goals = _goals(rows)
+        print("\n".join(goals))
+        lines += ["Goals, per method:", "", *goals]
     if args.write:
         kind = "held_out" if held_out else "tuning"
         write_section(

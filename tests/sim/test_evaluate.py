@@ -117,3 +117,22 @@ def test_coverage_losses_follow_the_columns_of_a_leaning_stripe():
     assert got["unlinked"] == pytest.approx(third / total)
     assert got["no_centre"] == pytest.approx(1 - 2 * third / total)
     assert sum(got.values()) == pytest.approx(1.0)
+
+
+def test_resolvable_coverage_counts_the_centres_that_stand_out_of_the_noise():
+    truth = _stripe((60, 40), 0.0, 3.0, 2)
+    row, col, _, _ = _true_centres(truth)
+    snr = np.zeros(truth.shape, np.float32)
+    snr[truth >= 0] = 10.0
+    snr[40:] = 1.0  # the stripe's lower third too faint to see
+    # points on the upper half only: a third of the resolvable centres have none
+    up = row < 30
+    ident = _ident(col[up], row[up], np.full(up.sum(), 2))
+    m = object_metrics(ident, truth, np.ones(truth.shape, bool), snr)["object"]
+    assert m["coverage"] == pytest.approx(30 / 60)
+    assert m["centres_resolvable"] == 40
+    assert m["coverage_resolvable"] == pytest.approx(30 / 40)
+    assert (
+        "coverage_resolvable"
+        not in object_metrics(ident, truth, np.ones(truth.shape, bool))["object"]
+    )

@@ -196,3 +196,26 @@ def test_every_scene_renders_with_slits(name):
     assert r.image.shape == (256, 320)
     assert (r.slit >= 0).sum() > 500, "slits must fall on every scene"
     assert len(np.unique(r.slit[r.slit >= 0])) >= 15
+
+
+def test_stripe_snr_is_the_slits_step_over_the_pixels_noise(small_spec):
+    """The truth's ``stripe_snr``: its step is what the slits add to the noise-free image (to
+    the rounding), its noise what two noisy renderings of the scene differ by."""
+    spec = replace(_no_dots(small_spec), sensor=replace(small_spec.sensor, speckle_contrast=0.0))
+    quiet = replace(spec, sensor=replace(spec.sensor, noise=False))
+    dark = replace(quiet, slits=replace(quiet.slits, power=0.0))
+    scene = reference_board(900)
+    rng = np.random.default_rng
+    clean = render(SimulatedRig.build(quiet), scene, rng(0))
+    step = clean.image.astype(float) - render(SimulatedRig.build(dark), scene, rng(0)).image
+    on = clean.stripe_snr > 0
+    assert on.mean() > 0.05 and np.all(clean.stripe_snr[clean.slit >= 0] > 0)
+    # without noise the pixel's noise is the rounding alone
+    assert np.abs(step[on] - clean.stripe_snr[on] * np.sqrt(1 / 12)).max() <= 1.0
+    rig = SimulatedRig.build(spec)
+    a, b = (render(rig, scene, rng(s)) for s in (1, 2))
+    assert np.array_equal(a.stripe_snr, b.stripe_snr)  # noise-free, as the truth is
+    strong = on & (step >= 20)
+    sigma = step[strong] / a.stripe_snr[strong]
+    z = (a.image[strong].astype(float) - b.image[strong]) / (np.sqrt(2) * sigma)
+    assert 0.9 < z.std() < 1.1, z.std()

@@ -12,6 +12,7 @@ identification against the truth.
 
 from multislit.sim.evaluate import (
     LOSSES,
+    RESOLVABLE_SNR,
     coverage_losses,
     identification_metrics,
     object_metrics,
@@ -27,7 +28,7 @@ from multislit.sim.primitives import (
     constant,
     noise_texture,
 )
-from multislit.sim.render import Rendered, render
+from multislit.sim.render import Rendered, render, stripe_snr
 from multislit.sim.rig import RigSpec, SimulatedRig, dense_rig, true_dot_projector
 from multislit.sim.scene import SCENES, TargetDesign, make_scene, reference_board, standard_object
 from multislit.sim.sequence import SimulatedSequence, moving_scene, simulate_sequence
@@ -36,6 +37,7 @@ from multislit.sim.zoo import random_rig, random_scene, simulate_zoo_capture, zo
 
 __all__ = [
     "LOSSES",
+    "RESOLVABLE_SNR",
     "SCENES",
     "Box",
     "Cylinder",
@@ -66,6 +68,7 @@ __all__ = [
     "simulate_sequence",
     "simulate_zoo_capture",
     "standard_object",
+    "stripe_snr",
     "true_dot_projector",
     "zoo_target",
 ]

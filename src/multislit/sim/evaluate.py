@@ -7,6 +7,10 @@ from numpy.typing import NDArray
 
 from multislit.errors import MultislitError
 
+#: A true stripe-centre pixel is resolvable where the slits' light there stands at least this
+#: many noise sigmas out of the pixel's noise (the truth's ``stripe_snr``).
+RESOLVABLE_SNR = 3.0
+
 
 def _runs(t: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
     """The runs of equal labels along the rows of ``t`` (H, W): row, first column, length and
@@ -86,8 +90,11 @@ def _near_centres(u: NDArray, v: NDArray, centres: tuple, h: int, w: int) -> lis
     return out
 
 
-def _score(ident, truth_slit: NDArray, mask: NDArray | None) -> dict:
-    """Points, correct, wrong (all and at confidence >= 0.5) and coverage, within ``mask``."""
+def _score(
+    ident, truth_slit: NDArray, mask: NDArray | None, stripe_snr: NDArray | None = None
+) -> dict:
+    """Points, correct, wrong (all and at confidence >= 0.5) and coverage, within ``mask``;
+    with ``stripe_snr``, the coverage of the resolvable centres too."""
     h, w = truth_slit.shape
     ok = ident.identified
     u, v, k = ident.u[ok], ident.v[ok], ident.slit[ok]
@@ -108,18 +115,25 @@ def _score(ident, truth_slit: NDArray, mask: NDArray | None) -> dict:
         u, v, k = u[inside], v[inside], k[inside]
         correct, wrong, hi = correct[inside], wrong[inside], hi[inside]
     near = _near_centres(u, v, centres, h, w)
-    got = sum(bool(np.any(k[idx] == lab)) for idx, lab in zip(near, centres[2], strict=True))
+    hit = np.array([bool(np.any(k[idx] == lab)) for idx, lab in zip(near, centres[2], strict=True)], bool)  # fmt: skip
     n_pts = len(u)
     n = max(n_pts, 1)
     n_centres = len(centres[0])
-    return {
+    out = {
         "points": int(n_pts),
         "correct": float(correct.sum() / n),
         "wrong": float(wrong.sum() / n),
         "wrong_confident": float((wrong & hi).sum() / n),
-        "coverage": got / max(n_centres, 1),
+        "coverage": float(hit.sum()) / max(n_centres, 1),
         "centres": n_centres,
     }
+    if stripe_snr is not None:
+        cr = np.clip(np.round(centres[0]).astype(int), 0, h - 1)
+        cc = np.clip(np.round(centres[1]).astype(int), 0, w - 1)
+        seen = np.asarray(stripe_snr)[cr, cc] >= RESOLVABLE_SNR
+        out["coverage_resolvable"] = float(hit[seen].sum()) / max(int(seen.sum()), 1)
+        out["centres_resolvable"] = int(seen.sum())
+    return out
 
 
 def identification_metrics(ident, truth_slit: NDArray) -> dict:
@@ -139,7 +153,9 @@ def identification_metrics(ident, truth_slit: NDArray) -> dict:
     return {key: m[key] for key in ("points", "correct", "wrong_confident", "coverage")}
 
 
-def object_metrics(ident, truth_slit: NDArray, truth_object: NDArray) -> dict[str, dict]:
+def object_metrics(
+    ident, truth_slit: NDArray, truth_object: NDArray, stripe_snr: NDArray | None = None
+) -> dict[str, dict]:
     """:func:`identification_metrics` on the objects and on the backdrop apart.
 
     Parameters
@@ -148,6 +164,10 @@ def object_metrics(ident, truth_slit: NDArray, truth_object: NDArray) -> dict[st
     truth_slit : (H, W) int, the truth's ``slit`` (-1: no stripe)
     truth_object : (H, W) bool, the truth's ``object`` (True: an object, False: the backdrop
         or nothing)
+    stripe_snr : (H, W) float32, the truth's ``stripe_snr``: with it, each scores dict also
+        holds ``coverage_resolvable``, the coverage of the true stripe-centre pixels where the
+        stripe stands at least :data:`RESOLVABLE_SNR` noise sigmas out of the pixel's noise,
+        and ``centres_resolvable``, how many there are
 
     Returns
     -------
@@ -163,7 +183,10 @@ def object_metrics(ident, truth_slit: NDArray, truth_object: NDArray) -> dict[st
         raise MultislitError(
             f"truth_object must have the shape of truth_slit {np.shape(truth_slit)}, got {obj.shape}"
         )
-    return {"object": _score(ident, truth_slit, obj), "backdrop": _score(ident, truth_slit, ~obj)}
+    return {
+        "object": _score(ident, truth_slit, obj, stripe_snr),
+        "backdrop": _score(ident, truth_slit, ~obj, stripe_snr),
+    }
 
 
 #: Why a true stripe-centre pixel has no point of its slit (:func:`coverage_losses`).

@@ -35,6 +35,8 @@ class Rendered:
     lit : (H, W) bool: the slit projector sees the point (not in its shadow)
     radiance : (H, W) float32: noise-free radiance before the sensor (full scale = 1)
     obj : (H, W) int16: index of the scene primitive seen by each pixel (-1: nothing), or None
+    stripe_snr : (H, W) float32: the slits' light at the pixel over the pixel's noise
+        (:func:`stripe_snr`; 0 where no slit lights it), or None
     """
 
     image: NDArray
@@ -43,6 +45,7 @@ class Rendered:
     lit: NDArray[np.bool_]
     radiance: NDArray[np.float32]
     obj: NDArray[np.int16] | None = None
+    stripe_snr: NDArray[np.float32] | None = None
 
 
 def _pixel_grid(w: int, h: int) -> F64:
@@ -258,6 +261,14 @@ def render(
         radiance = radiance * sensor.markers_exposure
     radiance = cv2.GaussianBlur(radiance.astype(np.float32), (0, 0), sensor.blur_sigma_px)
     image = expose(radiance, sensor, rng)
+    snr = None
+    if lasers:
+        sigma = sensor.blur_sigma_px
+        snr = stripe_snr(
+            cv2.GaussianBlur(slit_e.reshape(h, w).astype(np.float32), (0, 0), sigma),
+            cv2.GaussianBlur(rad.reshape(h, w).astype(np.float32), (0, 0), sigma),
+            sensor,
+        )
     xyz = hit.point.reshape(h, w, 3).astype(np.float32)
     return Rendered(
         image,
@@ -266,7 +277,35 @@ def render(
         lit.reshape(h, w),
         radiance,
         obj.astype(np.int16),
+        snr,
     )
+
+
+def stripe_snr(slits: NDArray, background: NDArray, sensor) -> NDArray[np.float32]:
+    """How far the slits' light stands out of a pixel's noise: the noise-free step the slits
+    add to the pixel (DN, less where it saturates) over the pixel's noise (shot noise of all
+    its light, read noise and the rounding to DN; the laser's speckle and the dots left out).
+
+    Parameters
+    ----------
+    slits : (H, W) float32, the slits' radiance at the sensor, blurred as the image is (full
+        scale = 1)
+    background : (H, W) float32, the rest of the scene's light there (ambient), blurred alike
+    sensor : the sensor's model (full well, read noise, bit depth, noise on or off)
+
+    Returns
+    -------
+    (H, W) float32, the slits' step in noise sigmas (0 where no slit lights the pixel)
+    """
+    full = float(2**sensor.bit_depth - 1)
+    bg = np.clip(background, 0, None)
+    level = bg + np.clip(slits, 0, None)
+    step = (np.minimum(level, 1.0) - np.minimum(bg, 1.0)) * full
+    var = 1.0 / 12.0  # rounding to DN
+    if sensor.noise:
+        e = np.minimum(level, 1.0) * sensor.full_well_e + sensor.read_noise_e**2
+        var = var + e * (full / sensor.full_well_e) ** 2
+    return (step / np.sqrt(var)).astype(np.float32)
 
 
 def expose(radiance: NDArray, sensor, rng: np.random.Generator) -> NDArray:

@@ -8,7 +8,9 @@ Layout written (see ``docs/capture-format.md``)::
 Each ``truth/<image>.npz`` holds per pixel ``xyz`` (float32, mm, world; NaN: nothing seen),
 ``slit`` (int16, the slit lighting the point, -1: none), ``lit`` (bool, in the slit projector's
 view), ``obj`` (int16, index of the primitive seen, -1: nothing), ``object`` (bool, the surface
-is an object, not the backdrop) and ``names`` (the scene's primitive names, by index).
+is an object, not the backdrop), ``names`` (the scene's primitive names, by index) and, in the
+images with the lasers on, ``stripe_snr`` (float32, the slits' light at the pixel in noise
+sigmas of the pixel, :func:`multislit.sim.render.stripe_snr`).
 """
 
 from __future__ import annotations
@@ -102,6 +104,7 @@ def _check_reference(rig: SimulatedRig, r: Rendered, name: str) -> None:
 
 def _save_truth(path: Path, r: Rendered, scene: Scene) -> None:
     """One image's per-pixel truth (see the module's docstring)."""
+    extra = {} if r.stripe_snr is None else {"stripe_snr": r.stripe_snr}
     np.savez_compressed(
         path,
         xyz=r.xyz,
@@ -110,6 +113,7 @@ def _save_truth(path: Path, r: Rendered, scene: Scene) -> None:
         obj=r.obj,
         object=scene.is_object(r.obj),
         names=np.array(scene.names, dtype=str),
+        **extra,
     )
 
 
