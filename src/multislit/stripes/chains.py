@@ -164,7 +164,7 @@ def _chains(key, us, lean, span, max_du, max_g):
 #: points: the response's smoothing along the stripe reaches a few rows past a bright
 #: stripe's end, a dot's refill can leave a faint tail below one, and dots that happen to lie
 #: one above another make short faint streaks; a faint stripe runs on.
-WEAK_LENGTH_FACTOR = 3
+WEAK_LENGTH_FACTOR = 2
 
 
 #: A weak centre between strong ones whose peak is below this fraction of theirs is no part of
