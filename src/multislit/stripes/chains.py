@@ -159,12 +159,16 @@ def _chains(key, us, lean, span, max_du, max_g):
     return comp, size, sum_u
 
 
-#: A run of weak centres (found by the ridge response alone) at a segment's end, or a segment
-#: of weak centres only, is kept where it holds at least this many times ``min_length``
-#: points: the response's smoothing along the stripe reaches a few rows past a bright
-#: stripe's end, a dot's refill can leave a faint tail below one, and dots that happen to lie
-#: one above another make short faint streaks; a faint stripe runs on.
+#: A segment of weak centres only (found by the ridge response alone) is kept where it holds
+#: at least this many times ``min_length`` points: dots that happen to lie one above another
+#: make short faint streaks; a faint stripe runs on.
 WEAK_LENGTH_FACTOR = 2
+
+#: A run of weak centres at the end of a segment with strong ones is kept where it holds at
+#: least this many times ``min_length`` points: the response's smoothing along the stripe
+#: reaches a few rows past a bright stripe's end, and a dot's refill can leave a faint tail
+#: below one (:data:`WEAK_GAP_FRACTION` drops those much fainter than the stripe).
+WEAK_TAIL_FACTOR = 1
 
 
 #: A weak centre between strong ones whose peak is below this fraction of theirs is no part of
@@ -193,10 +197,10 @@ def settle_weak(
     alone, :func:`~multislit.stripes.centres.find_ridge_centres_validated`).
 
     In each segment, the weak centres before its first strong one and after its last are
-    dropped where they are fewer than ``weak_length`` (weak
+    dropped where they are fewer than :data:`WEAK_TAIL_FACTOR` times ``min_length`` (weak
     centres between strong ones stay: the stripe runs on across them); a segment without a
-    strong centre is dropped where it is that short. The segments left with fewer than
-    ``min_length`` points are dropped too. With ``peak``, a weak centre is dropped where its
+    strong centre is dropped where it is shorter than ``weak_length``. The segments left
+    with fewer than ``min_length`` points are dropped too. With ``peak``, a weak centre is dropped where its
     peak is below :data:`WEAK_GAP_FRACTION` times that of the strong ones next to it in its
     segment (the lower of the two between strong ones): there the stripe is gone (a shadow, a
     gap between two surfaces, its end), and the response's smoothing along the stripe
@@ -231,8 +235,9 @@ def settle_weak(
     has = last >= 0
     if weak_length is None:
         weak_length = WEAK_LENGTH_FACTOR * int(min_length)
-    cut_lead = has & (first - lo < weak_length)
-    cut_trail = has & (hi - 1 - last < weak_length)
+    tail = WEAK_TAIL_FACTOR * int(min_length)
+    cut_lead = has & (first - lo < tail)
+    cut_trail = has & (hi - 1 - last < tail)
     k = np.repeat(np.arange(lo.size), n)
     drop = (cut_lead[k] & (pos < first[k])) | (cut_trail[k] & (pos > last[k]))
     drop |= ~has[k] & (n[k] < weak_length)

@@ -155,9 +155,10 @@ def extract_slits(
     noise, weak where the response alone shows it; saturated runs from the image) ->
     :func:`~multislit.stripes.chains.link_segments` along the stripes' lean, the weak centres
     settled by :func:`~multislit.stripes.chains.settle_weak` (weak runs at a segment's ends
-    and segments of weak centres only are kept where
-    :data:`~multislit.stripes.chains.WEAK_LENGTH_FACTOR` times ``min_length`` long; a weak
-    centre in no segment is dropped); the dot image is cleaned of streaks by
+    are kept where :data:`~multislit.stripes.chains.WEAK_TAIL_FACTOR` times ``min_length``
+    long, segments of weak centres only where
+    :data:`~multislit.stripes.chains.WEAK_LENGTH_FACTOR` times; a weak centre in no segment is
+    dropped); the dot image is cleaned of streaks by
     :func:`~multislit.stripes.openings.remove_streaks`. The same steps on the transposed
     image find the stripes that lean towards the horizontal, column by column
     (:func:`~multislit.stripes.ridges.column_pass`, where a quick look along the columns finds
