@@ -11,7 +11,8 @@ the truth's ``stripe_snr``) and of all, the share of points on the objects with 
 (all, and at confidence >= 0.5), the share of the objects' centres too faint to resolve and
 where the resolvable ones are lost, the backdrop's resolvable coverage and wrong share, and the
 time; then, per method, how many scenes meet the goals (resolvable object coverage >= 90 %,
-wrong <= 0.2 %, <= 0.1 % at confidence >= 0.5; backdrop >= 95 % and <= 0.1 % wrong).
+wrong <= 0.2 %, <= 0.1 % at confidence >= 0.5; backdrop >= 95 % and <= 0.1 % wrong) and,
+per kind of object (spheres, rods, boxes, ...), where its resolvable centres go.
 
 Seeds: 0-99 are tuning seeds (look at them while developing); 1000 and above are held out
 (report on them, never tune on them). ``--held-out N`` runs seeds 1000, 1001, ...; seeds of
@@ -24,8 +25,10 @@ Run:  .venv/bin/python benchmarks/bench_zoo.py [--seeds 0 1 2] [--held-out N] [-
 from __future__ import annotations
 
 import argparse
+import re
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -106,11 +109,51 @@ def _goals(rows: list[tuple[str, dict, dict]]) -> list[str]:
     return out
 
 
+def _kinds(truth, seen: np.ndarray) -> dict[str, np.ndarray]:
+    """The objects' resolvable pixels ``seen`` (H, W) split by kind of object: the primitives'
+    names without their numbers (``sphere``, ``ballbar_rod``, ``stairs_step``, ...)."""
+    kinds: dict[str, list[int]] = {}
+    for i, name in enumerate(truth["names"]):
+        kinds.setdefault(re.sub(r"\d+", "", str(name)), []).append(i)
+    out = {k: seen & np.isin(truth["obj"], ids) for k, ids in kinds.items()}
+    return {k: m for k, m in out.items() if m.any()}
+
+
+def _by_kind(tally: dict[str, dict[str, Counter]]) -> list[str]:
+    """Per method, a table of where each kind of object's resolvable centres go."""
+    out = []
+    for method, kinds in tally.items():
+        out += [
+            f"Where the resolvable centres go by kind of object ({method}; shares of the kind's "
+            "centres over all scenes):",
+            "",
+            "| kind | centres | covered | no centre | unlinked | unidentified | left out | wrong |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for kind, c in sorted(kinds.items(), key=lambda kv: -kv[1]["n"]):
+            n = max(c["n"], 1)
+            out.append(
+                f"| {kind} | {c['n']:.0f} | {100 * c['covered'] / n:.1f} % | "
+                f"{100 * c['no_centre'] / n:.1f} % | {100 * c['unlinked'] / n:.1f} % | "
+                f"{100 * c['segment_unidentified'] / n:.1f} % | "
+                f"{100 * c['point_left_out'] / n:.1f} % | {100 * c['wrong'] / n:.1f} % |"
+            )
+        out.append("")
+    return out
+
+
 def run_seed(
-    seed: int, folder: Path, size: tuple[int, int], scenes: int, methods: list[str], rows: list
+    seed: int,
+    folder: Path,
+    size: tuple[int, int],
+    scenes: int,
+    methods: list[str],
+    rows: list,
+    tally: dict[str, dict[str, Counter]],
 ) -> list[str]:
     """Simulate (or reuse), calibrate and identify one zoo seed; print its lines, return them;
-    each scene's (method, object scores, backdrop scores) appended to ``rows``."""
+    each scene's (method, object scores, backdrop scores) appended to ``rows``, its losses by
+    kind of object added to ``tally`` (method -> kind -> counts)."""
     cap = _capture(folder, seed, size, scenes)
     res, why = _calibrate(cap)
     summary = _calibration_summary(res) if res is not None else why
@@ -152,6 +195,11 @@ def run_seed(
             rows.append((method, o, b))
             seen = truth["object"] & (snr >= RESOLVABLE_SNR)
             lost = coverage_losses(ident, truth["slit"], mask=seen)
+            for kind, mask in _kinds(truth, seen).items():
+                c = tally.setdefault(method, {}).setdefault(kind, Counter())
+                got = coverage_losses(ident, truth["slit"], mask=mask, counts=True)
+                c.update(got)
+                c["n"] += sum(got.values())
             faint = 100 * (1 - o["centres_resolvable"] / max(1, o["centres"]))
             lines.append(
                 cells + f" {100 * o['coverage_resolvable']:.1f} / {100 * o['coverage']:.1f} % | "
@@ -220,12 +268,14 @@ def main() -> None:
             "",
         ]
         rows: list = []
+        tally: dict[str, dict[str, Counter]] = {}
         for seed in seeds:
             folder = root / f"zoo_{seed}_{args.size[0]}x{args.size[1]}_{args.scenes}"
-            lines += run_seed(seed, folder, tuple(args.size), args.scenes, args.method, rows)
+            lines += run_seed(seed, folder, tuple(args.size), args.scenes, args.method, rows, tally)
         goals = _goals(rows)
-        print("\n".join(goals))
-        lines += ["Goals, per method:", "", *goals]
+        kinds = _by_kind(tally)
+        print("\n".join(goals + [""] + kinds))
+        lines += ["Goals, per method:", "", *goals, "", *kinds]
     if args.write:
         kind = "held_out" if held_out else "tuning"
         write_section(

@@ -116,6 +116,8 @@ def test_coverage_losses_follow_the_columns_of_a_leaning_stripe():
     assert got["covered"] == pytest.approx(third / total)
     assert got["unlinked"] == pytest.approx(third / total)
     assert got["no_centre"] == pytest.approx(1 - 2 * third / total)
+    n = coverage_losses(ident, truth, counts=True)
+    assert n["covered"] == third and sum(n.values()) == total
     assert sum(got.values()) == pytest.approx(1.0)
 
 

@@ -193,7 +193,9 @@ def object_metrics(
 LOSSES = ("covered", "no_centre", "unlinked", "segment_unidentified", "point_left_out", "wrong")
 
 
-def coverage_losses(ident, truth_slit: NDArray, mask: NDArray | None = None) -> dict[str, float]:
+def coverage_losses(
+    ident, truth_slit: NDArray, mask: NDArray | None = None, counts: bool = False
+) -> dict[str, float]:
     """Where the coverage of :func:`identification_metrics` is lost.
 
     Each true stripe-centre pixel (taken across the stripe, as the coverage takes it) is put in
@@ -209,10 +211,11 @@ def coverage_losses(ident, truth_slit: NDArray, mask: NDArray | None = None) -> 
     truth_slit : (H, W) int, the truth's ``slit`` (-1: no stripe)
     mask : (H, W) bool, only the true stripe-centre pixels in it count (e.g. the truth's
         ``object``); default all
+    counts : give the numbers of pixels instead of shares
 
     Returns
     -------
-    dict class -> share of the true stripe-centre pixels (they sum to 1)
+    dict class -> share of the true stripe-centre pixels (they sum to 1), or their number
     """
     h, w = truth_slit.shape
     seg = ident.segment
@@ -241,5 +244,7 @@ def coverage_losses(ident, truth_slit: NDArray, mask: NDArray | None = None) -> 
             count["point_left_out"] += 1
         else:
             count["segment_unidentified"] += 1
+    if counts:
+        return {k: float(v) for k, v in count.items()}
     n = max(len(row), 1)
     return {k: v / n for k, v in count.items()}
