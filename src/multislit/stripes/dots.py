@@ -130,7 +130,9 @@ def find_dots(
     peak = (s >= cv2.dilate(s, np.ones((3, 3), np.uint8))) & (s > thr)
     peak[0, :] = peak[-1, :] = False
     peak[:, 0] = peak[:, -1] = False
-    r, c = np.nonzero(peak)
+    at = cv2.findNonZero(peak.view(np.uint8))  # (x, y), in the order of the rows
+    at = np.zeros((0, 2), np.intp) if at is None else at.reshape(-1, 2).astype(np.intp)
+    r, c = at[:, 1], at[:, 0]
     if r.size == 0:
         e = np.zeros(0)
         return DotCentres(e, e.copy(), e.copy())
@@ -210,17 +212,16 @@ def _stripe_peak_at(
     """(M,) float32: :func:`stripe_maps`' ``stripe_peak`` at the pixels (``r``, ``c``) (M,)
     only."""
     h, w = shape
-    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
-    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1)
-    pk = np.zeros((h, w), np.float32)
-    np.maximum.at(pk, (pr, pc), np.asarray(peak, np.float32))
     rad = max(1, int(math.ceil(radius_px)))
+    # the centres' peaks on the image padded by the reach (nothing beyond the image)
+    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1) + rad
+    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1) + rad
+    pk = np.zeros((h + 2 * rad, w + 2 * rad), np.float32)
+    np.maximum.at(pk, (pr, pc), np.asarray(peak, np.float32))
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
     out = np.zeros(len(r), np.float32)
     for dr, dc in zip(*np.nonzero(k), strict=True):  # cv2.dilate's offsets
-        rr, cc = r + (dr - rad), c + (dc - rad)
-        ok = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
-        out[ok] = np.maximum(out[ok], pk[rr[ok], cc[ok]])
+        np.maximum(out, pk[r + dr, c + dc], out=out)
     return out
 
 
