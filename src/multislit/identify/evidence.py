@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -49,9 +50,9 @@ from multislit.stripes.dots import (
     DotCentres,
     DotResponse,
     dot_response,
-    dots_clear_of_stripes,
+    dots_off_stripes,
     find_dots,
-    stripe_maps,
+    near_stripes,
     z_at,
 )
 from multislit.stripes.separation import saturation_level_of
@@ -227,9 +228,8 @@ class FrameDots:
     Attributes
     ----------
     dots : DotCentres, the dots found, speckle on the stripes left out
-        (:func:`~multislit.stripes.dots.dots_clear_of_stripes`)
+        (:func:`~multislit.stripes.dots.dots_off_stripes`)
     near : (M,) bool, the dots closer than ``clearance_px`` to a stripe centre
-    distance : (H, W) float32, px, distance to the nearest stripe centre
     clearance_px : px
     p_false : (2, Hb, Wb) float32, :func:`false_match_map`
     grid : the found dots' look-up grid (:func:`dot_grid`)
@@ -242,7 +242,6 @@ class FrameDots:
 
     dots: DotCentres
     near: NDArray[np.bool_]
-    distance: F32
     clearance_px: float
     p_false: F32
     grid: tuple
@@ -255,7 +254,11 @@ class FrameDots:
         :meth:`~multislit.stripes.dots.DotResponse.kernel_args`) and the chance of a dot by
         chance with the table of :func:`dot_llr`: (near zone (H, W) uint8, the chance's level
         per zone and block (2, Hb, Wb) uint8, logit of each level (Q,), the table (Q, T), its
-        first ``y`` and its steps per unit of ``y``)."""
+        first ``y`` and its steps per unit of ``y``); made once per frame."""
+        return self._kernel_args
+
+    @cached_property
+    def _kernel_args(self) -> tuple[tuple, tuple]:
         levels, table, lo, scale = _llr_table()
         q = np.searchsorted(0.5 * (levels[1:] + levels[:-1]), self.p_false).astype(np.uint8)
         chance = (self.near_zone, q, np.log(levels / (1.0 - levels)), table, lo, scale)
@@ -640,19 +643,27 @@ def _log_mean_exp(x):
     return x[best] + math.log(acc / len(x)), best
 
 
+#: Columns of a predicted dot's record (:func:`_slope_zero`): side, dot, the curve's range,
+#: cosine and sine across the slits at the dot's angle along them, its place (u, v) at the
+#: slope 0 and its expected response.
+_REC = 8
+
+
 @njit(cache=True)
-def _score_hypothesis(full, k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dots,
-                      su, sv, amp, beta, resp, chance, G, gvals, score, count, nuse):  # fmt: skip
-    """The dots of window's slit hypothesis ``k`` (its curve ``cp``, ``sp``, ``ss``, ``rr``
-    sorted by ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``): per side, into
-    ``score`` (2, S) and ``count`` (2, S) over the slopes ``gvals`` when ``full``, else at the
-    slope 0 only (column 0); ``nuse`` (2,) the dots in the image."""
+def _slope_zero(k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dots, su, sv, amp,
+                beta, resp, chance, rec, n0, score, count, nuse):  # fmt: skip
+    """The dots of a window's slit hypothesis ``k`` (its curve ``cp``, ``sp``, ``ss``, ``rr``
+    sorted by ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``) at the slope 0:
+    per side into ``score`` (2, S) and ``count`` (2, S) (column 0) and ``nuse`` (2,) (the dots
+    in the image), each dot in the image recorded in ``rec`` (R, :data:`_REC`) from row
+    ``n0`` on. Returns the end of the records, or -1 when ``rec`` is too short."""
     C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
     h, w = chance[0].shape
     nb = len(b_start) - 1
     b0 = max(0, int(math.floor((phmin - hb[k] - phi0) / bw)))
     b1 = min(nb - 1, int(math.floor((phmax + hb[k] - phi0) / bw)))
+    n = n0
     for b in range(b0, b1 + 1):
         lo = _first_from(dss, d_order, b_start[b], b_start[b + 1], ssmin)
         for q in range(lo, b_start[b + 1]):
@@ -665,28 +676,44 @@ def _score_hypothesis(full, k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, 
             if abs(sd) > shb[k]:
                 continue
             side = 1 if sd * phi_sign > 0 else 0
-            dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
             r0 = _range(rc, cpc, spc, dcp[j], dsp[j], 0.0)
-            u0, v0 = _project(O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist)
+            u0, v0 = _project(O[0] + r0 * dirs[j, 0], O[1] + r0 * dirs[j, 1],
+                              O[2] + r0 * dirs[j, 2], cam, R, t, dist)  # fmt: skip
             if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                 continue
+            if n >= rec.shape[0]:
+                return -1
             nuse[side] += 1
             a = beta[j] * amp
-            if not full:
-                ok, x = _soft(u0, v0, su, sv, a, resp, chance)
-                if ok:
-                    score[side, 0] += x
-                    if x > 0.0:
-                        count[side, 0] += 1
-                continue
-            rm = _range(rc, cpc, spc, dcp[j], dsp[j], -G)
-            rp = _range(rc, cpc, spc, dcp[j], dsp[j], G)
-            um, vm = _project(O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist)
-            up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
-            if not (np.isfinite(um) and np.isfinite(up)):
-                um, vm, up, vp = u0, v0, u0, v0
-            _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, resp, chance, gvals, score[side],
-                      count[side])  # fmt: skip
+            ok, x = _soft(u0, v0, su, sv, a, resp, chance)
+            if ok:
+                score[side, 0] += x
+                if x > 0.0:
+                    count[side, 0] += 1
+            rec[n, 0], rec[n, 1], rec[n, 2], rec[n, 3] = side, j, rc, cpc
+            rec[n, 4], rec[n, 5], rec[n, 6], rec[n, 7] = spc, u0, v0, a
+            n += 1
+    return n
+
+
+@njit(cache=True)
+def _slopes(rec, n0, n1, rig, dots, su, sv, resp, chance, G, gvals, score, count):  # fmt: skip
+    """The recorded dots ``rec[n0:n1]`` (:func:`_slope_zero`) over the slopes ``gvals`` (S,),
+    per side into ``score`` (2, S) and ``count`` (2, S)."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
+    for n in range(n0, n1):
+        side, j = int(rec[n, 0]), int(rec[n, 1])
+        rc, cpc, spc, u0, v0, a = rec[n, 2], rec[n, 3], rec[n, 4], rec[n, 5], rec[n, 6], rec[n, 7]
+        dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+        rm = _range(rc, cpc, spc, dcp[j], dsp[j], -G)
+        rp = _range(rc, cpc, spc, dcp[j], dsp[j], G)
+        um, vm = _project(O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist)
+        up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
+        if not (np.isfinite(um) and np.isfinite(up)):
+            um, vm, up, vp = u0, v0, u0, v0
+        _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, resp, chance, gvals, score[side],
+                  count[side])  # fmt: skip
 
 
 @njit(cache=True)
@@ -695,8 +722,8 @@ def _window_kernel(rays, order, win_start, hyp, rig, dots, wsu, wsv, wamp, beta,
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
     ``used`` and ``slope``, per (window, slit) into ``span`` and ``means``: every slit at the
     slope 0 first, then those within ``keep`` of the window's best with the slope
-    marginalised (the others keep the marginal's lower bound: their score at the slope 0 as if
-    all other slopes found nothing)."""
+    marginalised, from the dots recorded at the slope 0 (the others keep the marginal's lower
+    bound: their score at the slope 0 as if all other slopes found nothing)."""
     C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     nw = len(win_start) - 1
     nslit = planes.shape[0]
@@ -714,61 +741,72 @@ def _window_kernel(rays, order, win_start, hyp, rig, dots, wsu, wsv, wamp, beta,
     count = np.zeros((2, ns), np.int64)
     nuse = np.zeros(2, np.int64)
     quick = np.empty(nslit)
+    rec = np.empty((1024, _REC))
+    rec_start = np.zeros(nslit, np.int64)
+    rec_end = np.zeros(nslit, np.int64)
     for wi in range(nw):
         a0 = win_start[wi]
         nt = win_start[wi + 1] - a0
         if nt <= 0:
             continue
-        for rnd in range(2):
-            if rnd == 1:  # the slits worth the slope: the best at the slope 0
-                ranked = np.argsort(-quick)
-            for r in range(nslit):
-                k = r if rnd == 0 else ranked[r]
-                if rnd == 0:
-                    quick[k] = -np.inf
-                elif not quick[k] >= quick[ranked[0]] - keep:  # (also -inf)
-                    break
-                if not hyp[wi, k] or not np.isfinite(hb[k]):
-                    continue
-                ok, zmean, nc, phmin, phmax = _curve(
-                    C, rays, order, a0, nt, planes[k], O, F, R, t, cp, sp, ss, rr, idx
-                )
-                if not ok or zmean < zmin or zmean > zmax:
-                    continue
-                if rnd == 0:
-                    span[wi, k, 0] = ss[idx[0]]
-                    span[wi, k, 1] = ss[idx[nc - 1]]
-                    m0 = m1 = m2 = m3 = 0.0
-                    for i in range(nc):
-                        m0 += cp[i]
-                        m1 += sp[i]
-                        m2 += ss[i]
-                        m3 += rr[i]
-                    span[wi, k, 2] = m3 / nc
-                    means[wi, k, 0] = m0 / nc
-                    means[wi, k, 1] = m1 / nc
-                    means[wi, k, 2] = m2 / nc
-                    means[wi, k, 3] = m3 / nc
+        n = 0
+        for k in range(nslit):  # every slit at the slope 0
+            quick[k] = -np.inf
+            if not hyp[wi, k] or not np.isfinite(hb[k]):
+                continue
+            ok, zmean, nc, phmin, phmax = _curve(
+                C, rays, order, a0, nt, planes[k], O, F, R, t, cp, sp, ss, rr, idx
+            )
+            if not ok or zmean < zmin or zmean > zmax:
+                continue
+            span[wi, k, 0] = ss[idx[0]]
+            span[wi, k, 1] = ss[idx[nc - 1]]
+            m0 = m1 = m2 = m3 = 0.0
+            for i in range(nc):
+                m0 += cp[i]
+                m1 += sp[i]
+                m2 += ss[i]
+                m3 += rr[i]
+            span[wi, k, 2] = m3 / nc
+            means[wi, k, 0] = m0 / nc
+            means[wi, k, 1] = m1 / nc
+            means[wi, k, 2] = m2 / nc
+            means[wi, k, 3] = m3 / nc
+            while True:
                 score[:] = 0.0
                 count[:] = 0
                 nuse[:] = 0
-                _score_hypothesis(rnd == 1, k, ss[idx[0]], ss[idx[nc - 1]], phmin, phmax, cp, sp,
-                                  ss, rr, idx, nc, rig, dots, wsu[wi], wsv[wi], wamp[wi], beta,
-                                  resp, chance, G, gvals, score, count, nuse)  # fmt: skip
-                for sd in range(2):
-                    if rnd == 0:  # the marginal's lower bound: the slope 0 alone
-                        llr[wi, k, sd] = score[sd, 0] - math.log(ns)
-                        found[wi, k, sd] = count[sd, 0]
-                        used[wi, k, sd] = nuse[sd]
-                        slope[wi, k, sd] = 0.0
-                    else:
-                        lm, bi = _log_mean_exp(score[sd])
-                        llr[wi, k, sd] = lm
-                        found[wi, k, sd] = count[sd, bi]
-                        slope[wi, k, sd] = gvals[bi]
-                        kept[wi, k] = True
-                if rnd == 0:
-                    quick[k] = score[0, 0] + score[1, 0]
+                end = _slope_zero(k, ss[idx[0]], ss[idx[nc - 1]], phmin, phmax, cp, sp, ss, rr,
+                                  idx, nc, rig, dots, wsu[wi], wsv[wi], wamp[wi], beta, resp,
+                                  chance, rec, n, score, count, nuse)  # fmt: skip
+                if end >= 0:
+                    break
+                grown = np.empty((2 * rec.shape[0], _REC))
+                grown[:n] = rec[:n]
+                rec = grown
+            rec_start[k], rec_end[k] = n, end
+            n = end
+            for sd in range(2):  # the marginal's lower bound: the slope 0 alone
+                llr[wi, k, sd] = score[sd, 0] - math.log(ns)
+                found[wi, k, sd] = count[sd, 0]
+                used[wi, k, sd] = nuse[sd]
+                slope[wi, k, sd] = 0.0
+            quick[k] = score[0, 0] + score[1, 0]
+        ranked = np.argsort(-quick)  # the slits worth the slope: the best at the slope 0
+        for r in range(nslit):
+            k = ranked[r]
+            if not quick[k] >= quick[ranked[0]] - keep or not np.isfinite(quick[k]):
+                break
+            score[:] = 0.0
+            count[:] = 0
+            _slopes(rec, rec_start[k], rec_end[k], rig, dots, wsu[wi], wsv[wi], resp, chance,
+                    G, gvals, score, count)  # fmt: skip
+            for sd in range(2):
+                lm, bi = _log_mean_exp(score[sd])
+                llr[wi, k, sd] = lm
+                found[wi, k, sd] = count[sd, bi]
+                slope[wi, k, sd] = gvals[bi]
+                kept[wi, k] = True
 
 
 @njit(cache=True)
@@ -929,10 +967,9 @@ def frame_dots(extraction, spacing_px: float) -> FrameDots:
     ex = extraction
     h, w = ex.dots.shape
     clearance = STRIPE_CLEARANCE * ex.stripe_width_px
-    dist, peak = stripe_maps(ex.u, ex.v, ex.peak, (h, w), clearance)
-    near_zone = dist < clearance
+    near_zone = near_stripes(ex.u, ex.v, (h, w), clearance)
     found = find_dots(ex.dots, ex.noise_sigma, ex.dot_size_px)
-    dots, near = dots_clear_of_stripes(found, dist, peak, clearance, MIN_DOT_RATIO)
+    dots, near = dots_off_stripes(found, near_zone, ex.u, ex.v, ex.peak, clearance, MIN_DOT_RATIO)
     response = dot_response(
         ex.plane,
         ex.dot_size_px,
@@ -947,7 +984,6 @@ def frame_dots(extraction, spacing_px: float) -> FrameDots:
     return FrameDots(
         dots,
         near,
-        dist,
         float(clearance),
         pf,
         dot_grid(dots, (h, w)),

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -337,19 +339,8 @@ def label_pieces(
 
 def _groups(n: int, a: I64, b: I64) -> I64:
     """(n,) int64: the connected component of each of n nodes joined by the edges (a, b)."""
-    parent = np.arange(n)
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for x, y in zip(a.tolist(), b.tolist(), strict=True):
-        rx, ry = find(x), find(y)
-        if rx != ry:
-            parent[ry] = rx
-    return np.array([find(i) for i in range(n)], np.int64)
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
 def confidence_margin(confidence: float) -> float:

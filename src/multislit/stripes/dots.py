@@ -130,7 +130,9 @@ def find_dots(
     peak = (s >= cv2.dilate(s, np.ones((3, 3), np.uint8))) & (s > thr)
     peak[0, :] = peak[-1, :] = False
     peak[:, 0] = peak[:, -1] = False
-    r, c = np.nonzero(peak)
+    at = cv2.findNonZero(peak.view(np.uint8))  # (x, y), in the order of the rows
+    at = np.zeros((0, 2), np.intp) if at is None else at.reshape(-1, 2).astype(np.intp)
+    r, c = at[:, 1], at[:, 0]
     if r.size == 0:
         e = np.zeros(0)
         return DotCentres(e, e.copy(), e.copy())
@@ -185,6 +187,44 @@ def stripe_maps(
     return dist, cv2.dilate(pk, k)
 
 
+def near_stripes(u: F64, v: F64, shape: tuple[int, int], radius_px: float) -> NDArray[np.bool_]:
+    """(H, W) bool: the pixels closer than ``radius_px`` to a stripe centre (``u``, ``v`` (K,)
+    px), as :func:`stripe_maps`' distance measures it: the centres' pixels dilated by the
+    offsets at less than that distance, without the distance map of the whole image."""
+    h, w = shape
+    r = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
+    c = np.clip(np.rint(u).astype(np.intp), 0, w - 1)
+    marks = np.zeros((h, w), np.uint8)
+    marks[r, c] = 1
+    # the offsets: the same distance transform from one centre (it never steps outside the
+    # square of the offset, so the image's edges do not change it)
+    n = int(math.ceil(max(float(radius_px), 0.0) / 0.9)) + 1
+    one = np.full((2 * n + 1, 2 * n + 1), 255, np.uint8)
+    one[n, n] = 0
+    ball = (cv2.distanceTransform(one, cv2.DIST_L2, 3) < radius_px).astype(np.uint8)
+    return cv2.dilate(marks, ball) > 0
+
+
+def _stripe_peak_at(
+    r: NDArray[np.intp], c: NDArray[np.intp], u: F64, v: F64, peak: F64, shape: tuple[int, int],
+    radius_px: float,
+) -> NDArray[np.float32]:  # fmt: skip
+    """(M,) float32: :func:`stripe_maps`' ``stripe_peak`` at the pixels (``r``, ``c``) (M,)
+    only."""
+    h, w = shape
+    rad = max(1, int(math.ceil(radius_px)))
+    # the centres' peaks on the image padded by the reach (nothing beyond the image)
+    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1) + rad
+    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1) + rad
+    pk = np.zeros((h + 2 * rad, w + 2 * rad), np.float32)
+    np.maximum.at(pk, (pr, pc), np.asarray(peak, np.float32))
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    out = np.zeros(len(r), np.float32)
+    for dr, dc in zip(*np.nonzero(k), strict=True):  # cv2.dilate's offsets
+        np.maximum(out, pk[r + dr, c + dc], out=out)
+    return out
+
+
 def dots_clear_of_stripes(
     dots: DotCentres,
     distance: NDArray[np.float32],
@@ -207,7 +247,37 @@ def dots_clear_of_stripes(
     r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
     c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
     near = distance[r, c] < clearance_px
-    keep = ~near | (dots.peak >= min_ratio * stripe_peak[r, c])
+    return _speckle_free(dots, near, stripe_peak[r[near], c[near]], min_ratio)
+
+
+def dots_off_stripes(
+    dots: DotCentres,
+    near_zone: NDArray[np.bool_],
+    u: F64,
+    v: F64,
+    peak: F64,
+    clearance_px: float,
+    min_ratio: float,
+) -> tuple[DotCentres, NDArray[np.bool_]]:
+    """:func:`dots_clear_of_stripes` from the places near a stripe (``near_zone`` (H, W),
+    :func:`near_stripes`) and the stripe centres (``u``, ``v``, ``peak`` (K,)), the stripes'
+    peak read at the dots near them only."""
+    h, w = near_zone.shape
+    r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
+    c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
+    near = near_zone[r, c]
+    sp = _stripe_peak_at(r[near], c[near], u, v, peak, (h, w), clearance_px)
+    return _speckle_free(dots, near, sp, min_ratio)
+
+
+def _speckle_free(
+    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: NDArray[np.float32], min_ratio: float
+) -> tuple[DotCentres, NDArray[np.bool_]]:
+    """The dots kept (those not ``near`` (M,) a stripe, and those whose peak reaches
+    ``min_ratio`` of the stripe's peak beside them, ``stripe_peak`` (count of near,)) and
+    which of them are near one."""
+    keep = ~near
+    keep[near] = dots.peak[near] >= min_ratio * stripe_peak
     return dots.subset(keep), near[keep]
 
 
