@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_speed import median_blur_s, on_one_thread  # noqa: E402
+from bench_speed import median_blur_s, on_threads  # noqa: E402
 from results import command_line, write_section  # noqa: E402
 
 from multislit import compile_kernels  # noqa: E402
@@ -205,7 +205,7 @@ def report(r: dict) -> str:
 
 
 def main() -> None:
-    on_one_thread()
+    on_threads(1)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=30, help="frames (default 30)")
     ap.add_argument(
