@@ -16,7 +16,7 @@ from multislit.stripes import (
     StripeCentres,
     extract_slits,
 )
-from multislit.stripes.ridges import chain_angles, join_collinear, merge_passes
+from multislit.stripes.ridges import chain_angles, join_collinear, leaning_regions, merge_passes
 
 
 def _add_dot(img, x, y, peak, sigma=0.8):
@@ -263,3 +263,21 @@ def test_the_column_pass_can_be_left_out():
     assert not extract_slits(img, **ext.kwargs()).by_column.any()
     with pytest.raises(SlitExtractionError, match="leaning must be True or False"):
         extract_slits(img, leaning="yes")
+
+
+def test_a_line_across_upright_stripes_is_no_leaning_region():
+    """A thin bright line along a row, across upright stripes (an edge, a row of dots): the
+    quick look along the columns sees a run there, but it runs through the row pass's
+    stripes, so no region is searched again."""
+    img, _, _ = _leaning(0.0, dots=0, seed=9)
+    img = img.astype(float)
+    img[118:121, :] += np.array([20.0, 45.0, 20.0])[:, None]
+    img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    ex = extract_slits(img)
+    lk = ex.segment >= 0
+    link = {"max_du": 1.5, "max_gap": 2, "min_length": 10}
+    _, alone = leaning_regions(img, 1.3 * 2.355, 8.0, link)
+    assert alone, "the quick look sees the line"
+    _, boxes = leaning_regions(img, 1.3 * 2.355, 8.0, link, (ex.v[lk], ex.u[lk]))
+    assert boxes == []
+    assert not ex.by_column.any()

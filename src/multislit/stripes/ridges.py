@@ -21,7 +21,8 @@ lean_map`: dense stripes read far too upright on the coarser grid). Its centres 
 columns with a sub-pixel row. A stripe near the vertical is only a few columns wide: along a
 column it is no narrow ridge, and what maxima it leaves link over fewer columns than a
 segment needs. Where the pass runs is found by a quick look along the columns
-(:func:`leaning_regions`: maxima down to :data:`WEAK_FRACTION` of the threshold). In each
+(:func:`leaning_regions`: maxima down to :data:`WEAK_FRACTION` of the threshold, in runs that
+cross no stripe of the row pass). In each
 region its centres are the ridge response's, as in the row pass
 (:func:`~multislit.stripes.centres.find_ridge_centres_validated`: a matched filter across the
 stripe integrated along its lean, such stripes being dim); they are linked column to column
@@ -98,6 +99,9 @@ MIN_LENGTH_FACTOR = 2
 #: a surface turns, but ends there).
 _MAX_CROSSINGS = 1
 _CROSS_ROWS = 3
+#: A run of the quick look along the columns (:func:`leaning_regions`) with more points than
+#: this on stripes of the row pass is a row of dots or an edge across them.
+_QUICK_CROSSINGS = 0
 #: The column pass runs on tiles of this many px where :func:`leaning_regions` finds a hint
 #: of a leaning stripe, and on their neighbours.
 _TILE = 32
@@ -141,7 +145,11 @@ class ColumnCentres:
 
 
 def leaning_regions(
-    img: NDArray, stripe_width_px: float, threshold: float, link: dict
+    img: NDArray,
+    stripe_width_px: float,
+    threshold: float,
+    link: dict,
+    barrier: tuple[F64, F64] | None = None,
 ) -> tuple[NDArray[np.int32], list[tuple[int, int, int, int]]]:
     """Where stripes may lean towards the horizontal: a quick look along the columns.
 
@@ -159,6 +167,10 @@ def leaning_regions(
     stripe_width_px : float, px
     threshold : float, intensity units
     link : the keyword arguments of :func:`~multislit.stripes.chains.link_segments`
+    barrier : ((M,) float64, (M,) float64), px, the (v, u) of the row pass's linked centres:
+        a run through more than :data:`_MAX_CROSSINGS` of its stripes is no leaning stripe
+        (:func:`through_row_stripes`, as :func:`link_columns` judges the column pass's
+        segments), or None
 
     Returns
     -------
@@ -181,6 +193,13 @@ def leaning_regions(
         link["max_gap"],
         MIN_LENGTH_FACTOR * link["min_length"],
     )
+    if barrier is not None and np.any(seg >= 0):
+        on = np.flatnonzero(seg >= 0)
+        e = np.empty(0)
+        runs = StripeCentres(r[on].astype(np.float64), c[on].astype(np.float64), e, e)
+        seg[on] = strong_segments(
+            seg[on], through_row_stripes(runs, barrier), at_most=_QUICK_CROSSINGS
+        )
     lk = seg >= 0
     mark = np.zeros((th, tw), np.uint8)
     mark[c[lk] // _TILE, r[lk] // _TILE] = 1
@@ -233,7 +252,7 @@ def column_pass(
     ColumnCentres
     """
     h, w = img.shape
-    tiles, boxes = leaning_regions(img, stripe_width_px, WEAK_FRACTION * threshold, link)
+    tiles, boxes = leaning_regions(img, stripe_width_px, WEAK_FRACTION * threshold, link, barrier)
     dots = np.zeros((h, w), np.float32)
     if not boxes:
         e = np.empty(0)
