@@ -6,6 +6,7 @@ import json
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -16,7 +17,7 @@ from multislit.geometry.dots import DotProjector, dot_frame
 from multislit.io import Capture
 from multislit.sim import RigSpec, SimulatedRig
 from multislit.stripes import SlitExtractionError
-from multislit.stripes.dots import DotCentres, dots_clear_of_stripes, find_dots, stripe_maps
+from multislit.stripes.dots import DotCentres, dots_off_stripes, find_dots, near_stripes
 
 
 @pytest.fixture(scope="module")
@@ -239,13 +240,27 @@ def test_speckle_on_a_stripe_is_not_a_dot():
     shape = (40, 60)
     u = np.full(40, 20.0)
     v = np.arange(40.0)
-    dist, peak = stripe_maps(u, v, np.full(40, 200.0), shape, 3.0)
+    zone = near_stripes(u, v, shape, 3.0)
     dots = DotCentres(
         np.array([21.0, 22.0, 40.0]), np.array([10.0, 25.0, 10.0]), np.array([20.0, 60.0, 20.0])
     )
-    kept, near = dots_clear_of_stripes(dots, dist, peak, 3.0, 0.2)
+    kept, near = dots_off_stripes(dots, zone, u, v, np.full(40, 200.0), 3.0, 0.2)
     np.testing.assert_array_equal(kept.u, [22.0, 40.0])
     np.testing.assert_array_equal(near, [True, False])
+
+
+@pytest.mark.parametrize("radius", [0.5, 3.0, 4.7])
+def test_near_stripes_is_the_distance_transform_below_the_radius(radius):
+    """The places near a stripe are those OpenCV's distance transform puts within the radius,
+    at the image's edges too."""
+    rng = np.random.default_rng(2)
+    shape = (50, 70)
+    u = np.r_[rng.uniform(-2, 72, 60), 0.0, 69.0]
+    v = np.r_[rng.uniform(-2, 52, 60), 0.0, 49.0]
+    marks = np.full(shape, 255, np.uint8)
+    marks[np.clip(np.rint(v).astype(int), 0, 49), np.clip(np.rint(u).astype(int), 0, 69)] = 0
+    want = cv2.distanceTransform(marks, cv2.DIST_L2, 3) < radius
+    np.testing.assert_array_equal(near_stripes(u, v, shape, radius), want)
 
 
 def _board_image(rng, dots_uv, amp, shape=(160, 200), spacing=20.0):

@@ -46,11 +46,11 @@ from multislit.stripes.dots import (
     add_spot,
     dot_response,
     fit_dot_spots,
+    near_stripes,
     sharp_image,
     sharp_response,
     splat_spots,
     spot_at,
-    stripe_maps,
     stripe_spacing,
 )
 from multislit.stripes.separation import saturation_level_of
@@ -207,8 +207,7 @@ def board_view(image: NDArray, stripe_width_px: float, dot_size_px: float) -> Bo
     )
     h, w = ex.dots.shape
     clearance = STRIPE_CLEARANCE * ex.stripe_width_px
-    dist, _ = stripe_maps(ex.u, ex.v, ex.peak, (h, w), clearance)
-    near = dist < clearance
+    near = near_stripes(ex.u, ex.v, (h, w), clearance)
     angle = angle_field(ex, (h, w))
     r = np.clip(np.rint(ex.v).astype(np.intp), 0, h - 1)
     c = np.clip(np.rint(ex.u).astype(np.intp), 0, w - 1)

@@ -155,42 +155,11 @@ def _log_parabola(a: F64, b: F64, c: F64) -> F64:
     return np.clip(off, -0.5, 0.5)
 
 
-def stripe_maps(
-    u: F64, v: F64, peak: F64, shape: tuple[int, int], radius_px: float
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Where the stripes are, for judging dots near them.
-
-    Parameters
-    ----------
-    u, v : (K,) float64, px, stripe centres
-    peak : (K,) float64, the stripes' peak heights at the centres (intensity units)
-    shape : (H, W)
-    radius_px : px, how far from a centre the peak map reaches
-
-    Returns
-    -------
-    distance : (H, W) float32, px, from each pixel to the nearest stripe centre (rounded to
-        pixels; large where there are none)
-    stripe_peak : (H, W) float32, the largest stripe peak within ``radius_px`` of each pixel
-        (0 farther from every stripe)
-    """
-    h, w = shape
-    r = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(u).astype(np.intp), 0, w - 1)
-    marks = np.full((h, w), 255, np.uint8)
-    marks[r, c] = 0
-    dist = cv2.distanceTransform(marks, cv2.DIST_L2, 3)
-    pk = np.zeros((h, w), np.float32)
-    np.maximum.at(pk, (r, c), np.asarray(peak, np.float32))
-    rad = max(1, int(math.ceil(radius_px)))
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-    return dist, cv2.dilate(pk, k)
-
-
 def near_stripes(u: F64, v: F64, shape: tuple[int, int], radius_px: float) -> NDArray[np.bool_]:
     """(H, W) bool: the pixels closer than ``radius_px`` to a stripe centre (``u``, ``v`` (K,)
-    px), as :func:`stripe_maps`' distance measures it: the centres' pixels dilated by the
-    offsets at less than that distance, without the distance map of the whole image."""
+    px, rounded to pixels), by OpenCV's distance transform (``DIST_L2``, 3 x 3 mask): the
+    centres' pixels dilated by the offsets at less than that distance, without the distance
+    map of the whole image."""
     h, w = shape
     r = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
     c = np.clip(np.rint(u).astype(np.intp), 0, w - 1)
@@ -209,8 +178,9 @@ def _stripe_peak_at(
     r: NDArray[np.intp], c: NDArray[np.intp], u: F64, v: F64, peak: F64, shape: tuple[int, int],
     radius_px: float,
 ) -> NDArray[np.float32]:  # fmt: skip
-    """(M,) float32: :func:`stripe_maps`' ``stripe_peak`` at the pixels (``r``, ``c``) (M,)
-    only."""
+    """(M,) float32: the largest stripe peak (``peak`` (K,) at the centres ``u``, ``v``) within
+    the disc of ``radius_px`` (OpenCV's elliptic structuring element) of each pixel (``r``,
+    ``c``) (M,); 0 farther from every stripe."""
     h, w = shape
     rad = max(1, int(math.ceil(radius_px)))
     # the centres' peaks on the image padded by the reach (nothing beyond the image)
@@ -225,31 +195,6 @@ def _stripe_peak_at(
     return out
 
 
-def dots_clear_of_stripes(
-    dots: DotCentres,
-    distance: NDArray[np.float32],
-    stripe_peak: NDArray[np.float32],
-    clearance_px: float,
-    min_ratio: float,
-) -> tuple[DotCentres, NDArray[np.bool_]]:
-    """The dots that are not speckle on a stripe, and which of them lie near one.
-
-    Speckle on a stripe leaves dot-like peaks in the dot image, weaker than a dot: a dot closer
-    than ``clearance_px`` to a stripe centre is kept only when its peak is at least
-    ``min_ratio`` times the stripe's peak there.
-
-    Returns
-    -------
-    kept : DotCentres
-    near : (M',) bool, the kept dots closer than ``clearance_px`` to a stripe centre
-    """
-    h, w = distance.shape
-    r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
-    near = distance[r, c] < clearance_px
-    return _speckle_free(dots, near, stripe_peak[r[near], c[near]], min_ratio)
-
-
 def dots_off_stripes(
     dots: DotCentres,
     near_zone: NDArray[np.bool_],
@@ -259,9 +204,18 @@ def dots_off_stripes(
     clearance_px: float,
     min_ratio: float,
 ) -> tuple[DotCentres, NDArray[np.bool_]]:
-    """:func:`dots_clear_of_stripes` from the places near a stripe (``near_zone`` (H, W),
-    :func:`near_stripes`) and the stripe centres (``u``, ``v``, ``peak`` (K,)), the stripes'
-    peak read at the dots near them only."""
+    """The dots that are not speckle on a stripe, and which of them lie near one.
+
+    Speckle on a stripe leaves dot-like peaks in the dot image, weaker than a dot: a dot in
+    ``near_zone`` (H, W) (:func:`near_stripes` at ``clearance_px``) is kept only when its peak
+    is at least ``min_ratio`` times the largest stripe peak within ``clearance_px`` of it (the
+    stripe centres ``u``, ``v`` (K,) px and their ``peak`` (K,), read at those dots only).
+
+    Returns
+    -------
+    kept : DotCentres
+    near : (M',) bool, the kept dots in ``near_zone``
+    """
     h, w = near_zone.shape
     r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
     c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
@@ -1043,7 +997,7 @@ def centre_dots(
     sharp = sharp_image(ex.plane, saturation_level_of(ex.plane))
     h, w = sharp.shape
     clearance = STRIPE_CLEARANCE * ex.stripe_width_px
-    distance, _ = stripe_maps(ex.u, ex.v, ex.peak, (h, w), clearance)
+    near = near_stripes(ex.u, ex.v, (h, w), clearance)
     spacing = stripe_spacing(ex.u, ex.v)
     spread = 0.5 * max(spacing if math.isfinite(spacing) else 0.0, 2.0 * clearance)
     # the places where its noise is measured: the stripe centres taken again (with other
@@ -1063,7 +1017,7 @@ def centre_dots(
     amap = np.zeros((h, w), np.float64)
     _nearest_angle(u, v, np.nan_to_num(np.asarray(angle, np.float64)), _REGION_PX, d2, amap)
     sigma = float(ex.dot_size_px) / FWHM_PER_SIGMA
-    sr = sharp_response(sharp, amap, distance < clearance, sigma, np.isfinite(d2), beside)
+    sr = sharp_response(sharp, amap, near, sigma, np.isfinite(d2), beside)
     P, A, se, _ = fit_dot_spots(sr, sigma, spot_sigma_px)
     # each dot's spot: the nearest, where it is the dot's nearest too and shows a dot
     z = np.where(se[:, 2] > 0, A / np.where(se[:, 2] > 0, se[:, 2], 1.0), 0.0)
