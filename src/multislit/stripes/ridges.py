@@ -99,9 +99,6 @@ MIN_LENGTH_FACTOR = 2
 #: a surface turns, but ends there).
 _MAX_CROSSINGS = 1
 _CROSS_ROWS = 3
-#: A run of the quick look along the columns (:func:`leaning_regions`) with more points than
-#: this on stripes of the row pass is a row of dots or an edge across them.
-_QUICK_CROSSINGS = 0
 #: The column pass runs on tiles of this many px where :func:`leaning_regions` finds a hint
 #: of a leaning stripe, and on their neighbours.
 _TILE = 32
@@ -168,9 +165,8 @@ def leaning_regions(
     threshold : float, intensity units
     link : the keyword arguments of :func:`~multislit.stripes.chains.link_segments`
     barrier : ((M,) float64, (M,) float64), px, the (v, u) of the row pass's linked centres:
-        a run through more than :data:`_MAX_CROSSINGS` of its stripes is no leaning stripe
-        (:func:`through_row_stripes`, as :func:`link_columns` judges the column pass's
-        segments), or None
+        a run that crosses its stripes is no leaning stripe (:func:`off_row_stripes`, as
+        :func:`link_columns` judges the column pass's segments), or None
 
     Returns
     -------
@@ -197,9 +193,7 @@ def leaning_regions(
         on = np.flatnonzero(seg >= 0)
         e = np.empty(0)
         runs = StripeCentres(r[on].astype(np.float64), c[on].astype(np.float64), e, e)
-        seg[on] = strong_segments(
-            seg[on], through_row_stripes(runs, barrier), at_most=_QUICK_CROSSINGS
-        )
+        seg[on] = off_row_stripes(seg[on], runs, barrier)
     lk = seg >= 0
     mark = np.zeros((th, tw), np.uint8)
     mark[c[lk] // _TILE, r[lk] // _TILE] = 1
@@ -334,7 +328,7 @@ def link_columns(
     seg = join_collinear(c.v, c.u, seg, _JOIN_GAP, _JOIN_TOL_PX, barrier)
     seg = drop_short(seg, MIN_LENGTH_FACTOR * link["min_length"])
     seg = strong_segments(seg, strong)
-    return strong_segments(seg, through_row_stripes(c, barrier), at_most=_MAX_CROSSINGS - 1)
+    return off_row_stripes(seg, c, barrier)
 
 
 def strong_segments(segment: I64, strong: NDArray[np.bool_], at_most: int | None = None) -> I64:
@@ -347,6 +341,13 @@ def strong_segments(segment: I64, strong: NDArray[np.bool_], at_most: int | None
     count = np.bincount(segment[lk], strong[lk].astype(np.float64), n)
     ok = count > 0 if at_most is None else count <= at_most
     return np.where(lk & ok[np.maximum(segment, 0)], segment, -1)
+
+
+def off_row_stripes(segment: I64, c: StripeCentres, barrier: tuple[F64, F64]) -> I64:
+    """``segment`` (K,) int64 of the centres ``c`` (K,) with -1 for the segments that run
+    through :data:`_MAX_CROSSINGS` or more stripes of the row pass (``barrier``: its linked
+    (v, u), px; :func:`through_row_stripes`)."""
+    return strong_segments(segment, through_row_stripes(c, barrier), at_most=_MAX_CROSSINGS - 1)
 
 
 def through_row_stripes(c: StripeCentres, barrier: tuple[F64, F64]) -> NDArray[np.bool_]:
