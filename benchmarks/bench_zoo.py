@@ -194,18 +194,21 @@ def run_seed(
             o, b = m["object"], m["backdrop"]
             rows.append((method, o, b))
             seen = truth["object"] & (snr >= RESOLVABLE_SNR)
-            lost = coverage_losses(ident, truth["slit"], mask=seen)
+            lost: Counter = Counter()  # the scene's, summed over the kinds of object
             for kind, mask in _kinds(truth, seen).items():
                 c = tally.setdefault(method, {}).setdefault(kind, Counter())
                 got = coverage_losses(ident, truth["slit"], mask=mask, counts=True)
                 c.update(got)
                 c["n"] += sum(got.values())
+                lost.update(got)
+            n_seen = max(sum(lost.values()), 1)
             faint = 100 * (1 - o["centres_resolvable"] / max(1, o["centres"]))
             lines.append(
                 cells + f" {100 * o['coverage_resolvable']:.1f} / {100 * o['coverage']:.1f} % | "
                 f"{100 * o['wrong']:.2f} % | {100 * o['wrong_confident']:.2f} % | {faint:.1f} % | "
-                f"{100 * lost['no_centre']:.1f} / {100 * lost['segment_unidentified']:.1f} / "
-                f"{100 * lost['point_left_out']:.1f} % | {100 * b['coverage_resolvable']:.1f} % | "
+                f"{100 * lost['no_centre'] / n_seen:.1f} / "
+                f"{100 * lost['segment_unidentified'] / n_seen:.1f} / "
+                f"{100 * lost['point_left_out'] / n_seen:.1f} % | {100 * b['coverage_resolvable']:.1f} % | "
                 f"{100 * b['wrong']:.2f} % | {1e3 * dt:.0f} |"
             )
             print(lines[-1], flush=True)
