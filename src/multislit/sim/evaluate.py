@@ -115,7 +115,9 @@ def _score(
         u, v, k = u[inside], v[inside], k[inside]
         correct, wrong, hi = correct[inside], wrong[inside], hi[inside]
     near = _near_centres(u, v, centres, h, w)
-    hit = np.array([bool(np.any(k[idx] == lab)) for idx, lab in zip(near, centres[2], strict=True)], bool)  # fmt: skip
+    hit = np.array(
+        [bool(np.any(k[idx] == lab)) for idx, lab in zip(near, centres[2], strict=True)], bool
+    )
     n_pts = len(u)
     n = max(n_pts, 1)
     n_centres = len(centres[0])

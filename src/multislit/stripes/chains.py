@@ -200,11 +200,11 @@ def settle_weak(
     dropped where they are fewer than :data:`WEAK_TAIL_FACTOR` times ``min_length`` (weak
     centres between strong ones stay: the stripe runs on across them); a segment without a
     strong centre is dropped where it is shorter than ``weak_length``. The segments left
-    with fewer than ``min_length`` points are dropped too. With ``peak``, a weak centre is dropped where its
-    peak is below :data:`WEAK_GAP_FRACTION` times that of the strong ones next to it in its
-    segment (the lower of the two between strong ones): there the stripe is gone (a shadow, a
-    gap between two surfaces, its end), and the response's smoothing along the stripe
-    reaches on.
+    with fewer than ``min_length`` points are dropped too. With ``peak``, a weak centre is
+    dropped where its peak is below :data:`WEAK_GAP_FRACTION` times that of the strong ones
+    next to it in its segment (the lower of the two between strong ones): there the stripe
+    is gone (a shadow, a gap between two surfaces, its end), and the response's smoothing
+    along the stripe reaches on.
 
     Parameters
     ----------
