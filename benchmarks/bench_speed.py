@@ -58,14 +58,13 @@ from pathlib import Path
 from typing import NoReturn
 
 import cv2
-import numba
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from results import command_line, write_section  # noqa: E402
 
-from multislit import compile_kernels  # noqa: E402
+from multislit import compile_kernels, set_threads  # noqa: E402
 from multislit.calibrate import calibrate_capture  # noqa: E402
 from multislit.identify import IdentifyOptions, identify, prepare_reference  # noqa: E402
 from multislit.identify.evidence import frame_dots  # noqa: E402
@@ -295,8 +294,7 @@ def on_threads(threads: int) -> None:
     if any(os.environ.get(k) != str(threads) for k in _THREAD_VARS):
         os.environ.update(dict.fromkeys(_THREAD_VARS, str(threads)))
         os.execv(sys.executable, [sys.executable, *sys.argv])
-    cv2.setNumThreads(threads)
-    numba.set_num_threads(threads)
+    set_threads(threads)
 
 
 class _Parser(argparse.ArgumentParser):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -231,3 +232,28 @@ def test_two_stripes_side_by_side_couple_once_however_long():
     assert each.slit[4:].tolist() == [2] * 4
     assert once.slit[4:].tolist() == [5] * 4
     assert each.slit[:4].tolist() == once.slit[:4].tolist() == [1] * 4
+
+
+def test_the_evidence_does_not_depend_on_the_threads(frame):
+    """The windows' and the gaps' evidence spread over Numba's threads: one thread and two give
+    the same identification, bit for bit."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one core: nothing to spread")
+    img, _, ex, rig, ref = frame
+    before = numba.get_num_threads()
+    try:
+        ms.set_threads(1)
+        one = identify(img, ref, rig, extraction=ex)
+        ms.set_threads(2)
+        two = identify(img, ref, rig, extraction=ex)
+    finally:
+        ms.set_threads(before)
+    assert np.count_nonzero(one.slit >= 0) > 100
+    np.testing.assert_array_equal(one.slit, two.slit)
+    np.testing.assert_array_equal(one.confidence, two.confidence)
+
+
+@pytest.mark.parametrize("threads", [0, -1, 2.0, True, 10**6])
+def test_set_threads_refuses_what_is_not_a_count_of_threads(threads):
+    with pytest.raises(ms.MultislitError, match="threads must be"):
+        ms.set_threads(threads)

@@ -17,10 +17,21 @@ lines, slit addresses by the dots), :mod:`multislit.reconstruct` (triangulation,
 :mod:`multislit.measure` (holes, VDI/VDE 2634 figures); :mod:`multislit.calibrate`,
 :mod:`multislit.geometry` and :mod:`multislit.sim` (the rig simulator) beside them.
 :func:`compile_kernels` compiles every compiled (Numba) kernel of the package before the first
-frame.
+frame; :func:`set_threads` sets how many threads a frame may use.
 """
 
 __version__ = "0.1.0"
+
+import os
+
+# The compiled kernels spread their windows over Numba's threads (OpenMP); between those runs
+# the threads sleep rather than spin, or a spinning thread takes its core from the OpenCV calls
+# and the serial work of the frame. Set before the OpenMP runtime starts; a user's own setting
+# stands.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import cv2  # noqa: E402
+import numba  # noqa: E402
 
 from multislit import calibrate, identify, reconstruct, stripes
 from multislit.calibrate import Calibration, calibrate_capture, write_calibration
@@ -45,6 +56,7 @@ __all__ = [
     "read_ply",
     "scan_capture",
     "scan_image",
+    "set_threads",
     "simulate_capture",
     "write_calibration",
     "write_ply",
@@ -65,3 +77,26 @@ def compile_kernels() -> None:
     """
     for stage in (stripes, identify, reconstruct, calibrate):
         stage.compile_kernels()
+
+
+def set_threads(threads: int) -> None:
+    """Set how many threads the work on one frame may use: OpenCV's and Numba's.
+
+    By default both use every core. The identification's compiled kernels spread their windows
+    over Numba's threads, OpenCV its whole-image calls over its own; the result does not depend
+    on the number. Worker processes that are themselves the parallelism (``stream --workers``,
+    ``batch``) set 1.
+
+    Parameters
+    ----------
+    threads : int, >= 1, at most Numba's ``NUMBA_NUM_THREADS`` (the cores, by default)
+    """
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise MultislitError(f"threads must be a whole number >= 1, got {threads!r}")
+    if threads > numba.config.NUMBA_NUM_THREADS:
+        raise MultislitError(
+            f"threads must be at most {numba.config.NUMBA_NUM_THREADS} (NUMBA_NUM_THREADS: the "
+            f"cores), got {threads}"
+        )
+    cv2.setNumThreads(threads)
+    numba.set_num_threads(threads)

@@ -25,7 +25,7 @@ from typing import Any
 
 from numpy.typing import NDArray
 
-from multislit import compile_kernels
+from multislit import compile_kernels, set_threads
 from multislit.app.stream import (
     FrameResult,
     FrameWriter,
@@ -142,9 +142,7 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 def _one_thread() -> None:
-    import cv2
-
-    cv2.setNumThreads(1)
+    set_threads(1)
 
 
 class DaskRunner:

@@ -34,11 +34,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from multislit import __version__, compile_kernels
+from multislit import __version__, compile_kernels, set_threads
 from multislit.app.index import INDEX_FILE, RUN_FILE, RUN_FORMAT, frame_file, picture_file
 from multislit.app.pictures import encode_png, scan_picture
 from multislit.calibrate import Calibration
@@ -373,7 +372,7 @@ def _init_worker(
 ) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     threading.Thread(target=_watch_parent, args=(parent,), name="parent", daemon=True).start()
-    cv2.setNumThreads(1)  # a core per worker process: the processes are the parallelism
+    set_threads(1)  # a core per worker process: the processes are the parallelism
     compile_kernels()  # loaded before the first frame, which then costs what the others do
     _WORKER["reference"], _WORKER["calibration"] = reference, calibration
     _WORKER["pictures"], _WORKER["options"] = pictures, options

@@ -37,7 +37,7 @@ from functools import cached_property
 
 import cv2
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
@@ -92,6 +92,9 @@ _BRIGHTNESS_SAMPLE = 1000
 _CHANCE_LEVELS = 24
 #: Cell of the observed dots' look-up grid, px.
 _CELL = 4.0
+#: The windows (and the gaps between them) are worked in this many runs of consecutive ones,
+#: each with scratch of its own, spread over Numba's threads.
+_CHUNKS = 64
 #: Most records of found dots of one window and slit.
 _MAX_CAND = 4096
 
@@ -716,22 +719,37 @@ def _slopes(rec, n0, n1, rig, dots, su, sv, resp, chance, G, gvals, score, count
                   count[side])  # fmt: skip
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _window_kernel(rays, order, win_start, hyp, rig, dots, wsu, wsv, wamp, beta, resp, chance,
                    G, steps, keep, llr, found, used, slope, kept, span, means):  # fmt: skip
     """:func:`dot_evidence`'s windows; per (window, slit, side) into ``llr``, ``found``,
     ``used`` and ``slope``, per (window, slit) into ``span`` and ``means``: every slit at the
     slope 0 first, then those within ``keep`` of the window's best with the slope
     marginalised, from the dots recorded at the slope 0 (the others keep the marginal's lower
-    bound: their score at the slope 0 as if all other slopes found nothing)."""
-    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    bound: their score at the slope 0 as if all other slopes found nothing).
+
+    The windows are worked in :data:`_CHUNKS` runs spread over Numba's threads; each window
+    writes its own rows only, so the result does not depend on the number of threads."""
     nw = len(win_start) - 1
-    nslit = planes.shape[0]
-    gvals = _slope_grid(G, steps)
-    ns = len(gvals)
     maxt = 2
     for wi in range(nw):
         maxt = max(maxt, (win_start[wi + 1] - win_start[wi] - 1) // _CURVE_STRIDE + 2)
+    nchunk = min(nw, _CHUNKS)
+    for c in prange(nchunk):
+        _window_run(c * nw // nchunk, (c + 1) * nw // nchunk, maxt, rays, order, win_start,
+                    hyp, rig, dots, wsu, wsv, wamp, beta, resp, chance, G, steps, keep, llr,
+                    found, used, slope, kept, span, means)  # fmt: skip
+
+
+@njit(cache=True)
+def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, wamp, beta,
+                resp, chance, G, steps, keep, llr, found, used, slope, kept, span, means):  # fmt: skip
+    """:func:`_window_kernel` on the windows ``w0 .. w1 - 1``, with scratch of its own for
+    curves of up to ``maxt`` points."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    nslit = planes.shape[0]
+    gvals = _slope_grid(G, steps)
+    ns = len(gvals)
     cp = np.empty(maxt)
     sp = np.empty(maxt)
     ss = np.empty(maxt)
@@ -744,7 +762,7 @@ def _window_kernel(rays, order, win_start, hyp, rig, dots, wsu, wsv, wamp, beta,
     rec = np.empty((1024, _REC))
     rec_start = np.zeros(nslit, np.int64)
     rec_end = np.zeros(nslit, np.int64)
-    for wi in range(nw):
+    for wi in range(w0, w1):
         a0 = win_start[wi]
         nt = win_start[wi + 1] - a0
         if nt <= 0:
@@ -833,22 +851,36 @@ def _point(O, F, cp, sp, ss, r):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _gap_kernel(rays, a_order, a_start, b_order, b_start_, ga, gb, means, rig, dots, gsu, gsv,
                 gamp, beta, resp, chance, G, steps, pairs, fixed, free_a, free_b,
                 graze):  # fmt: skip
-    """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one)."""
-    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
-    dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
+    """:func:`gap_evidence`: per gap and slit k of its left piece (k + 1 of its right one);
+    the gaps in :data:`_CHUNKS` runs spread over Numba's threads (each writes its own rows)."""
     ngap = len(a_start) - 1
-    nslit = planes.shape[0]
-    h, w = chance[0].shape
-    nb = len(b_start) - 1
     maxt = 2
     for p in range(ngap):
         na_ = (a_start[p + 1] - a_start[p] - 1) // _CURVE_STRIDE + 2
         nb_ = (b_start_[p + 1] - b_start_[p] - 1) // _CURVE_STRIDE + 2
         maxt = max(maxt, na_, nb_)
+    nchunk = min(ngap, _CHUNKS)
+    for c in prange(nchunk):
+        _gap_run(c * ngap // nchunk, (c + 1) * ngap // nchunk, maxt, rays, a_order, a_start,
+                 b_order, b_start_, ga, gb, means, rig, dots, gsu, gsv, gamp, beta, resp, chance,
+                 G, steps, pairs, fixed, free_a, free_b, graze)  # fmt: skip
+
+
+@njit(cache=True)
+def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, means, rig, dots,
+             gsu, gsv, gamp, beta, resp, chance, G, steps, pairs, fixed, free_a, free_b,
+             graze):  # fmt: skip
+    """:func:`_gap_kernel` on the gaps ``p0 .. p1 - 1``, with scratch of its own for curves of
+    up to ``maxt`` points."""
+    C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
+    dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
+    nslit = planes.shape[0]
+    h, w = chance[0].shape
+    nb = len(b_start) - 1
     cpa = np.empty(maxt)
     spa = np.empty(maxt)
     ssa = np.empty(maxt)
@@ -862,7 +894,7 @@ def _gap_kernel(rays, a_order, a_start, b_order, b_start_, ga, gb, means, rig, d
     gvals = _slope_grid(G, steps)
     score = np.zeros((2, len(gvals)))
     count = np.zeros((2, len(gvals)), np.int64)
-    for p in range(ngap):
+    for p in range(p0, p1):
         a0, na0 = a_start[p], a_start[p + 1] - a_start[p]
         c0, nb0 = b_start_[p], b_start_[p + 1] - b_start_[p]
         if na0 < 2 or nb0 < 2:
