@@ -31,7 +31,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -201,6 +201,26 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
     return belief, fwd, bwd
 
 
+@njit(cache=True, parallel=True)
+def _propagate_pair(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, ca2, cb2,
+                    bonus2, change2, second, f_slit, f_cost, f_start, f_cand):  # fmt: skip
+    """The beliefs (S, L) of :func:`_propagate` with the continuations ``ca``, ``cb``,
+    ``bonus``, ``change`` and, when ``second``, beside them (on another of Numba's threads)
+    with the continuations ``ca2`` .. ``change2`` instead (else the second is empty)."""
+    out = np.empty((2 if second else 1, unary.shape[0], unary.shape[1]))
+    for i in prange(out.shape[0]):
+        if i == 0:
+            b, _, _ = _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change,
+                                 f_slit, f_cost, f_start, f_cand, _SWEEPS, _DAMPING)  # fmt: skip
+        else:
+            b, _, _ = _propagate(unary, ga, gb, theta, penalty, split, ca2, cb2, bonus2, change2,
+                                 f_slit, f_cost, f_start, f_cand, _SWEEPS, _DAMPING)  # fmt: skip
+        out[i] = b
+    if second:
+        return out[0], out[1]
+    return out[0], np.empty((0, unary.shape[1]))
+
+
 def label_pieces(
     unary: F64,
     gap_a: I64,
@@ -277,23 +297,32 @@ def label_pieces(
         np.asarray(factors[3], np.int64),
     )
     theta = np.where(cont, cw[:, None] + gap_bonus, np.nan)
-    belief, fwd, bwd = _propagate(
+    ca, cb = np.asarray(cont_a, np.int64), np.asarray(cont_b, np.int64)
+    c_bonus, c_change = np.asarray(cont_bonus, np.float64), np.asarray(cont_change, np.float64)
+    # the labelling without the continuations that do not vouch (beside the frame's): a slit
+    # that differs there rests on them alone
+    keep = None if cont_ties is None or np.all(cont_ties) else np.asarray(cont_ties, bool)
+    sel = keep if keep is not None else np.zeros(len(ca), bool)
+    belief, alone = _propagate_pair(
         np.ascontiguousarray(u, np.float64),
         np.asarray(gap_a, np.int64),
         np.asarray(gap_b, np.int64),
         np.ascontiguousarray(theta, np.float64),
         repeat_penalty * w,
         split_penalty * w,
-        np.asarray(cont_a, np.int64),
-        np.asarray(cont_b, np.int64),
-        np.asarray(cont_bonus, np.float64),
-        np.asarray(cont_change, np.float64),
+        ca,
+        cb,
+        c_bonus,
+        c_change,
+        ca[sel],
+        cb[sel],
+        c_bonus[sel],
+        c_change[sel],
+        keep is not None,
         fk,
         fc,
         fs,
         fm,
-        _SWEEPS,
-        _DAMPING,
     )
     best = np.argmax(belief, axis=1)
     top = belief[np.arange(s), best]
@@ -302,35 +331,13 @@ def label_pieces(
     # the groups of pieces the labelling ties together, and the dots' evidence of each
     ga, gb = np.asarray(gap_a, np.int64), np.asarray(gap_b, np.int64)
     tied_gap = (best[gb] == best[ga] + 1) & cont[np.arange(len(ga)), np.minimum(best[ga], n - 1)]
-    ca, cb = np.asarray(cont_a, np.int64), np.asarray(cont_b, np.int64)
     tied_cont = best[ca] == best[cb]
     if cont_ties is not None:
         tied_cont &= np.asarray(cont_ties, bool)
     group = _groups(s, np.r_[ga[tied_gap], ca[tied_cont]], np.r_[gb[tied_gap], cb[tied_cont]])
     own = u[np.arange(s), best]
     support = np.bincount(group, weights=own, minlength=s)[group]
-    if cont_ties is not None and not np.all(cont_ties):
-        # the labelling without the continuations that do not vouch: a slit that differs there
-        # rests on them alone
-        keep = np.asarray(cont_ties, bool)
-        alone, _, _ = _propagate(
-            np.ascontiguousarray(u, np.float64),
-            np.asarray(gap_a, np.int64),
-            np.asarray(gap_b, np.int64),
-            np.ascontiguousarray(theta, np.float64),
-            repeat_penalty * w,
-            split_penalty * w,
-            np.asarray(cont_a, np.int64)[keep],
-            np.asarray(cont_b, np.int64)[keep],
-            np.asarray(cont_bonus, np.float64)[keep],
-            np.asarray(cont_change, np.float64)[keep],
-            fk,
-            fc,
-            fs,
-            fm,
-            _SWEEPS,
-            _DAMPING,
-        )
+    if keep is not None:
         conf = np.where(np.argmax(alone, axis=1) == best, conf, 0.0)
     ruled_out = ~np.isfinite(unary[np.arange(s), best])
     slit = np.where(ruled_out, -1, best)
