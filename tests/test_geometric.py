@@ -253,7 +253,16 @@ def test_the_evidence_does_not_depend_on_the_threads(frame):
     np.testing.assert_array_equal(one.confidence, two.confidence)
 
 
-@pytest.mark.parametrize("threads", [0, -1, 2.0, True, 10**6])
+@pytest.mark.parametrize("threads", [0, -1, 2.0, True, "2", 10**6])
 def test_set_threads_refuses_what_is_not_a_count_of_threads(threads):
     with pytest.raises(ms.MultislitError, match="threads must be"):
         ms.set_threads(threads)
+
+
+def test_set_threads_takes_numpy_s_integers():
+    before = numba.get_num_threads()
+    try:
+        ms.set_threads(np.int64(1))
+        assert numba.get_num_threads() == 1
+    finally:
+        ms.set_threads(before)

@@ -22,6 +22,7 @@ frame; :func:`set_threads` sets how many threads a frame may use.
 
 __version__ = "0.1.0"
 
+import numbers
 import os
 
 # The compiled kernels spread their windows over Numba's threads (OpenMP); between those runs
@@ -91,8 +92,9 @@ def set_threads(threads: int) -> None:
     ----------
     threads : int, >= 1, at most Numba's ``NUMBA_NUM_THREADS`` (the cores, by default)
     """
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+    if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or threads < 1:
         raise MultislitError(f"threads must be a whole number >= 1, got {threads!r}")
+    threads = int(threads)
     if threads > numba.config.NUMBA_NUM_THREADS:
         raise MultislitError(
             f"threads must be at most {numba.config.NUMBA_NUM_THREADS} (NUMBA_NUM_THREADS: the "
