@@ -90,7 +90,7 @@ def main() -> None:
     lines = [
         f"{args.frames} simulated frames of {w}x{h} px, {spec.slits.num_slits} slits "
         f"({', '.join(SCENES)} in turn), PLY and index written; 2-core machine (one worker: "
-        "OpenCV's threads on both cores; worker processes: one OpenCV thread each); load "
+        "OpenCV's and Numba's threads on both cores; worker processes: one thread each); load "
         f"average {load:.1f} before the runs (other work on the machine slows every figure).",
         "",
         "| run | frames | frames per second | after the first frame | wall, s |",
