@@ -94,6 +94,9 @@ _NULL_RANK = 4
 #: Across a cut of a linked segment (a brightness step or a kink), the window after it gains
 #: this for the slit of the window before it.
 _JUNCTION = 5.0
+#: The dots between two windows are scored for the pairs (k, k + 1) of slits within this (nats)
+#: of each window's best.
+_PAIR_NATS = 8.0
 #: A piece that continues another below it (within these rows and px) gains this for one slit.
 _CONTINUATION = 1.0
 _CONTINUATION_ROWS = 12
@@ -163,10 +166,11 @@ def identify_geometry(
     gp = gaps_across(
         ex.u, ex.v, window, ex.by_column, ex.angle, _GAP_SPACINGS * reference.spacing_px, _GAP_ROWS
     )
-    # the pairs (k, k + 1) worth the dots between: both slits kept by their windows' evidence
-    # (scored with the slope marginalised: not far below the window's best)
+    # the pairs (k, k + 1) worth the dots between: both near their windows' best
+    best = np.where(np.isfinite(scores), scores, -np.inf)
+    near_best = ev.kept & (best >= best.max(axis=1, keepdims=True) - _PAIR_NATS)
     pairs = np.zeros((gp.num_gaps, rig.num_slits), bool)
-    pairs[:, :-1] = ev.kept[gp.a, :-1] & ev.kept[gp.b, 1:]
+    pairs[:, :-1] = near_best[gp.a, :-1] & near_best[gp.b, 1:]
     ge = gap_evidence(
         rig,
         rays,
