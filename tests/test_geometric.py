@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numba
 import numpy as np
 import pytest
@@ -266,3 +270,32 @@ def test_set_threads_takes_numpy_s_integers():
         assert numba.get_num_threads() == 1
     finally:
         ms.set_threads(before)
+
+
+@pytest.mark.slow
+def test_frames_identified_on_two_threads_at_once_on_numba_s_work_queue(tmp_path):
+    """Numba's work-queue threading layer (where a machine has neither OpenMP nor TBB) aborts
+    the process when two threads enter a parallel kernel at once; the identification's
+    parallel kernels take turns there."""
+    script = tmp_path / "two_threads.py"
+    script.write_text(
+        "import threading\n"
+        "import numba\n"
+        "from multislit.identify import identify\n"
+        "from multislit.identify.frame import synthetic_rig\n"
+        "reference, images, rig = synthetic_rig()\n"
+        "def work():\n"
+        "    for _ in range(3):\n"
+        "        for image in images:\n"
+        "            identify(image, reference, rig)\n"
+        "threads = [threading.Thread(target=work) for _ in range(2)]\n"
+        "[t.start() for t in threads]\n"
+        "[t.join() for t in threads]\n"
+        "print('layer', numba.threading_layer())\n"
+    )
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue", "NUMBA_NUM_THREADS": "2"}
+    run = subprocess.run(
+        [sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "layer workqueue" in run.stdout

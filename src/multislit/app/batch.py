@@ -50,6 +50,7 @@ __all__ = ["DaskRunner", "batch"]
 _INFLIGHT_PER_WORKER = 3  # frames queued per Dask worker
 _CONNECT_TIMEOUT_S = 10
 _TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+_NUMBA_THREADS_KEY = "distributed.nanny.pre-spawn-environ.NUMBA_NUM_THREADS"
 
 
 def _dask():
@@ -259,8 +260,10 @@ def batch(
 
             # Dask sets MALLOC_TRIM_THRESHOLD_=65536 in its worker processes by default: glibc
             # then returns every large array's memory at once and scans run about twice as
-            # slowly; the workers of this cluster keep glibc's own setting.
-            with dask.config.set({_TRIM_KEY: None}), _sigint_ignored():
+            # slowly; the workers of this cluster keep glibc's own setting. Each worker process
+            # is a core: Numba's threads, which it reads as it loads, are one there.
+            settings = {_TRIM_KEY: None, _NUMBA_THREADS_KEY: "1"}
+            with dask.config.set(settings), _sigint_ignored():
                 cluster = distributed.LocalCluster(
                     n_workers=workers,
                     threads_per_worker=1,

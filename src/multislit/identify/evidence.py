@@ -41,6 +41,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from multislit.identify.launch import launch
 from multislit.identify.pieces import group_medians
 from multislit.identify.result import DotMatches
 from multislit.identify.rig import RigGeometry
@@ -380,7 +381,8 @@ def dot_evidence(
     means = np.full((nw, n, 4), np.nan, np.float64)
     if nw:
         rig_k, dots_k = _rig_args(rig)
-        _window_kernel(
+        launch(
+            _window_kernel,
             np.ascontiguousarray(rays, np.float64),
             order.astype(np.intp),
             win_start.astype(np.intp),
@@ -450,7 +452,8 @@ def gap_evidence(
         pairs = np.ones((ng, n), bool)
     if ng:
         rig_k, dots_k = _rig_args(rig)
-        _gap_kernel(
+        launch(
+            _gap_kernel,
             np.ascontiguousarray(rays, np.float64),
             a_order.astype(np.intp),
             a_start.astype(np.intp),

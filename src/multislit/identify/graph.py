@@ -36,6 +36,8 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from multislit.identify.launch import launch
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -303,7 +305,8 @@ def label_pieces(
     # that differs there rests on them alone
     keep = None if cont_ties is None or np.all(cont_ties) else np.asarray(cont_ties, bool)
     sel = keep if keep is not None else np.zeros(len(ca), bool)
-    belief, alone = _propagate_pair(
+    belief, alone = launch(
+        _propagate_pair,
         np.ascontiguousarray(u, np.float64),
         np.asarray(gap_a, np.int64),
         np.asarray(gap_b, np.int64),
