@@ -23,6 +23,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
+import numba
 from numpy.typing import NDArray
 
 from multislit import compile_kernels, set_threads
@@ -50,7 +51,6 @@ __all__ = ["DaskRunner", "batch"]
 _INFLIGHT_PER_WORKER = 3  # frames queued per Dask worker
 _CONNECT_TIMEOUT_S = 10
 _TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
-_NUMBA_THREADS_KEY = "distributed.nanny.pre-spawn-environ.NUMBA_NUM_THREADS"
 
 
 def _dask():
@@ -146,6 +146,13 @@ def _one_thread() -> None:
     set_threads(1)
 
 
+def _scan_on_one_thread(*args: Any, **kwargs: Any) -> FrameResult:
+    """:func:`scan_frame` with Numba's threads set to one in the task's thread (Numba keeps
+    the setting per thread, and a Dask worker runs its tasks on threads of its own)."""
+    numba.set_num_threads(1)
+    return scan_frame(*args, **kwargs)
+
+
 class DaskRunner:
     """Scans frames on a Dask cluster; the reference and calibration are on every worker once.
 
@@ -153,6 +160,9 @@ class DaskRunner:
     ----------
     client : a connected ``dask.distributed.Client``
     reference, calibration : the capture's prepared reference set and calibration
+    pictures, options : as :func:`batch`'s
+    one_thread : each frame on one of Numba's threads (a local cluster: its workers are the
+        parallelism); False: the workers' own setting
     """
 
     def __init__(
@@ -163,8 +173,10 @@ class DaskRunner:
         *,
         pictures: bool = False,
         options: ScanOptions | None = None,
+        one_thread: bool = False,
     ) -> None:
         self.client = client
+        self._scan = _scan_on_one_thread if one_thread else scan_frame
         self.pictures, self.options = bool(pictures), options
         workers = max(1, len(client.scheduler_info().get("workers", {})))
         self.capacity = _INFLIGHT_PER_WORKER * workers
@@ -176,7 +188,7 @@ class DaskRunner:
         # keys one finished frame releases the data that a later, equal one still needs
         img = self.client.scatter(image, hash=False)
         return self.client.submit(
-            scan_frame,
+            self._scan,
             img,
             self._ref,
             self._cal,
@@ -260,10 +272,8 @@ def batch(
 
             # Dask sets MALLOC_TRIM_THRESHOLD_=65536 in its worker processes by default: glibc
             # then returns every large array's memory at once and scans run about twice as
-            # slowly; the workers of this cluster keep glibc's own setting. Each worker process
-            # is a core: Numba's threads, which it reads as it loads, are one there.
-            settings = {_TRIM_KEY: None, _NUMBA_THREADS_KEY: "1"}
-            with dask.config.set(settings), _sigint_ignored():
+            # slowly; the workers of this cluster keep glibc's own setting.
+            with dask.config.set({_TRIM_KEY: None}), _sigint_ignored():
                 cluster = distributed.LocalCluster(
                     n_workers=workers,
                     threads_per_worker=1,
@@ -279,7 +289,9 @@ def batch(
         return run_frames(
             src,
             writer,
-            DaskRunner(client, ref, cal, pictures=pictures, options=opts),
+            DaskRunner(
+                client, ref, cal, pictures=pictures, options=opts, one_thread=cluster is not None
+            ),
             image_size=cap.image_size,
             max_frames=max_frames,
             on_bad_frame=on_bad_frame,
