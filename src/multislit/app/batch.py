@@ -129,6 +129,21 @@ def _probe(address: str, timeout: float) -> None:
 
 
 @contextmanager
+def _loop_errors_quiet() -> Iterator[None]:
+    """The Dask client's event loop does not print its callbacks' errors while the command
+    runs: a Ctrl-C in the middle of one of the client's calls makes Dask log one with a
+    traceback (its call's cancellation), and the command then says "interrupted" itself. The
+    frames' own errors come back through their futures."""
+    log = logging.getLogger("tornado.application")
+    old = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        log.setLevel(old)
+
+
+@contextmanager
 def _sigint_ignored() -> Iterator[None]:
     """Ctrl-C ignored while the local cluster's processes start: they inherit it, so a Ctrl-C
     reaches only this process, which then closes the cluster (no worker tracebacks)."""
@@ -258,49 +273,55 @@ def batch(
     settings = {"channel": channel, "every": every, "dask": address, "workers": workers}
     writer.run = run_record("batch", cap, calibration, source, settings, opts)
     cluster = client = None
-    try:
-        if address is not None:
-            _probe(address, _CONNECT_TIMEOUT_S)
-            try:
-                client = distributed.Client(address, timeout=_CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError, ValueError) as exc:
-                raise MeasurementError(
-                    f"--dask {address}: cannot reach the Dask scheduler ({exc})"
-                ) from None
-        else:
-            import dask
+    with _loop_errors_quiet():
+        try:
+            if address is not None:
+                _probe(address, _CONNECT_TIMEOUT_S)
+                try:
+                    client = distributed.Client(address, timeout=_CONNECT_TIMEOUT_S)
+                except (OSError, TimeoutError, ValueError) as exc:
+                    raise MeasurementError(
+                        f"--dask {address}: cannot reach the Dask scheduler ({exc})"
+                    ) from None
+            else:
+                import dask
 
-            # Dask sets MALLOC_TRIM_THRESHOLD_=65536 in its worker processes by default: glibc
-            # then returns every large array's memory at once and scans run about twice as
-            # slowly; the workers of this cluster keep glibc's own setting.
-            with dask.config.set({_TRIM_KEY: None}), _sigint_ignored():
-                cluster = distributed.LocalCluster(
-                    n_workers=workers,
-                    threads_per_worker=1,
-                    processes=processes,
-                    dashboard_address=None,
-                    silence_logs=logging.ERROR,
-                )
-            client = distributed.Client(cluster)
-            if processes:
-                client.run(_one_thread)  # a core per worker process
-        client.run(compile_kernels)  # each worker's compiled kernels before its first frame
-        ref = capture_reference(cap)
-        return run_frames(
-            src,
-            writer,
-            DaskRunner(
-                client, ref, cal, pictures=pictures, options=opts, one_thread=cluster is not None
-            ),
-            image_size=cap.image_size,
-            max_frames=max_frames,
-            on_bad_frame=on_bad_frame,
-            progress=progress,
-        )
-    finally:
-        src.close()
-        writer.close()
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
+                # Dask sets MALLOC_TRIM_THRESHOLD_=65536 in its worker processes by default: glibc
+                # then returns every large array's memory at once and scans run about twice as
+                # slowly; the workers of this cluster keep glibc's own setting.
+                with dask.config.set({_TRIM_KEY: None}), _sigint_ignored():
+                    cluster = distributed.LocalCluster(
+                        n_workers=workers,
+                        threads_per_worker=1,
+                        processes=processes,
+                        dashboard_address=None,
+                        silence_logs=logging.ERROR,
+                    )
+                client = distributed.Client(cluster)
+                if processes:
+                    client.run(_one_thread)  # a core per worker process
+            client.run(compile_kernels)  # each worker's compiled kernels before its first frame
+            ref = capture_reference(cap)
+            return run_frames(
+                src,
+                writer,
+                DaskRunner(
+                    client,
+                    ref,
+                    cal,
+                    pictures=pictures,
+                    options=opts,
+                    one_thread=cluster is not None,
+                ),
+                image_size=cap.image_size,
+                max_frames=max_frames,
+                on_bad_frame=on_bad_frame,
+                progress=progress,
+            )
+        finally:
+            src.close()
+            writer.close()
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
