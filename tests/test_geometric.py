@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 
+import cv2
 import numba
 import numpy as np
 import pytest
@@ -244,14 +245,15 @@ def test_the_evidence_does_not_depend_on_the_threads(frame):
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one core: nothing to spread")
     img, _, ex, rig, ref = frame
-    before = numba.get_num_threads()
+    before = numba.get_num_threads(), cv2.getNumThreads()
     try:
         ms.set_threads(1)
         one = identify(img, ref, rig, extraction=ex)
         ms.set_threads(2)
         two = identify(img, ref, rig, extraction=ex)
     finally:
-        ms.set_threads(before)
+        numba.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
     assert np.count_nonzero(one.slit >= 0) > 100
     np.testing.assert_array_equal(one.slit, two.slit)
     np.testing.assert_array_equal(one.confidence, two.confidence)
@@ -264,12 +266,14 @@ def test_set_threads_refuses_what_is_not_a_count_of_threads(threads):
 
 
 def test_set_threads_takes_numpy_s_integers():
-    before = numba.get_num_threads()
+    before = numba.get_num_threads(), cv2.getNumThreads()
     try:
         ms.set_threads(np.int64(1))
         assert numba.get_num_threads() == 1
+        assert cv2.getNumThreads() == 1
     finally:
-        ms.set_threads(before)
+        numba.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
 
 
 @pytest.mark.slow

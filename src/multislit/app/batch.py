@@ -158,6 +158,8 @@ def _sigint_ignored() -> Iterator[None]:
 
 
 def _one_thread() -> None:
+    """A local worker process on one core: OpenCV's threads, which are the process's (Numba
+    keeps its setting per thread: :func:`_scan_on_one_thread` sets it in each task's)."""
     set_threads(1)
 
 
