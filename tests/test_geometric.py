@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -237,6 +238,61 @@ def test_two_stripes_side_by_side_couple_once_however_long():
     assert each.slit[4:].tolist() == [2] * 4
     assert once.slit[4:].tolist() == [5] * 4
     assert each.slit[:4].tolist() == once.slit[:4].tolist() == [1] * 4
+
+
+def _chain_score(labels, unary, kinds, coupling, penalty, split, bonus, change):
+    """The labelling's total log-likelihood on a chain of pieces (piece i and i + 1 joined
+    by a gap, kind 0, or a continuation, kind 1), as the labelling's terms define it."""
+    total = sum(unary[i, k] for i, k in enumerate(labels))
+    for i, kind in enumerate(kinds):
+        a, b = labels[i], labels[i + 1]
+        if kind == 1:
+            total += bonus if a == b else -change
+        elif b == a + 1:
+            total += coupling
+        else:
+            total -= penalty if a == b else split
+    return total
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    unary=st.lists(st.floats(-10, 10), min_size=20, max_size=20),
+    kinds=st.lists(st.integers(0, 1), min_size=4, max_size=4),
+    terms=st.lists(st.floats(0, 12), min_size=5, max_size=5),
+)
+def test_the_labelling_of_a_chain_is_its_max_marginals(unary, kinds, terms):
+    """On a graph without loops max-product belief propagation is exact: each piece's
+    beliefs are the best total log-likelihood of the labellings that give it each slit (up to
+    a constant), worked out here over every labelling of five pieces and four slits."""
+    n, m = 4, 5
+    u = np.array(unary).reshape(m, n)
+    coupling, penalty, split, bonus, change = terms
+    gaps_ = [i for i, kind in enumerate(kinds) if kind == 0]
+    conts = [i for i, kind in enumerate(kinds) if kind == 1]
+    lab = label_pieces(
+        u,
+        np.array(gaps_, np.int64),
+        np.array(gaps_, np.int64) + 1,
+        np.zeros((len(gaps_), n)),
+        np.ones((len(gaps_), n), bool),
+        np.full(len(gaps_), 40),
+        np.array(conts, np.int64),
+        np.array(conts, np.int64) + 1,
+        np.full(len(conts), bonus),
+        np.full(len(conts), change),
+        coupling=coupling,
+        repeat_penalty=penalty,
+        split_penalty=split,
+    )
+    best = np.full((m, n), -np.inf)
+    for labels in itertools.product(range(n), repeat=m):
+        x = _chain_score(labels, u, kinds, coupling, penalty, split, bonus, change)
+        for i, k in enumerate(labels):
+            best[i, k] = max(best[i, k], x)
+    got = lab.belief - lab.belief.max(axis=1, keepdims=True)
+    want = best - best.max(axis=1, keepdims=True)
+    np.testing.assert_allclose(got, want, atol=0.02)
 
 
 def test_the_evidence_does_not_depend_on_the_threads(frame):

@@ -16,7 +16,8 @@ Every piece gets the slit of the labelling that maximises
   vouch (across a place where two slits' stripes may meet): a piece whose slit rests on
   them alone is left out.
 
-The labelling is found by loopy belief propagation (max-product, damped), which gives every
+The labelling is found by loopy belief propagation (max-product, run until its messages
+settle), which gives every
 piece its belief per label; the confidence of a piece's label is its belief's share
 (softmax) against every other slit; the support of a label is the own evidence summed over
 the group of pieces the labelling ties together. A piece whose best slit has less than the
@@ -43,11 +44,13 @@ I64 = NDArray[np.int64]
 
 #: Rows two pieces must share for their coupling to count in full.
 _COUPLING_ROWS = 40.0
-#: Belief propagation: sweeps and damping (share of the old message kept).
+#: Belief propagation: at most this many sweeps ...
 _SWEEPS = 10
-_DAMPING = 0.5
-#: ... stopping early once no message moves by more than this (nats).
+#: ... stopping once no message moves by more than this (nats).
 _SETTLED = 0.05
+#: A message is sent again only when its source's belief has moved by more than this (nats)
+#: since it was last sent.
+_QUIET = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,7 +130,7 @@ def _continuation_message(h, bonus, change, out):
 
 @njit(cache=True)
 def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_slit, f_cost,
-               f_start, f_cand, sweeps, damping):  # fmt: skip
+               f_start, f_cand, sweeps):  # fmt: skip
     """Loopy max-product belief propagation; the beliefs (S, L) and the messages along each
     edge (gaps, then continuations) to its second piece and to its first (E, L) each.
 
@@ -138,7 +141,10 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
 
     The messages are sent one after the other, each piece's belief kept up to date as they
     arrive, the edges in their order and in reverse by turns (a chain's evidence travels its
-    length in one sweep)."""
+    length in one sweep). Each piece's belief has a version, raised whenever a message moves
+    it by more than :data:`_QUIET`; a message whose source's version is the one it was last
+    computed from is not computed again (it would come out the same), so after the first
+    sweeps only the messages near a change are."""
     nl = unary.shape[1]
     ng = len(ga)
     ne = ng + len(ca)
@@ -149,6 +155,8 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
     belief = unary.copy()
     tmp = np.empty(nl)
     h = np.empty(nl)
+    version = np.zeros(len(unary), np.int64)
+    sent = np.full((ne, 2), -1, np.int64)  # the source's version each message was sent from
     for sweep in range(sweeps):
         moved = 0.0
         for q in range(ne):
@@ -158,6 +166,10 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
             for forward in (True, False):
                 # from one end of the edge, without what the other end told it
                 src, dst = (a, b) if forward else (b, a)
+                side = 0 if forward else 1
+                if sent[e, side] == version[src]:
+                    continue
+                sent[e, side] = version[src]
                 msg = fwd[e] if forward else bwd[e]
                 back = bwd[e] if forward else fwd[e]
                 for k in range(nl):
@@ -167,11 +179,15 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
                 else:
                     _continuation_message(h, bonus[e - ng], change[e - ng], tmp)
                 m = tmp.max()
+                step = 0.0
                 for k in range(nl):
-                    x = damping * msg[k] + (1.0 - damping) * (tmp[k] - m)
-                    moved = max(moved, abs(x - msg[k]))
+                    x = tmp[k] - m
+                    step = max(step, abs(x - msg[k]))
                     belief[dst, k] += x - msg[k]
                     msg[k] = x
+                moved = max(moved, step)
+                if step > _QUIET:
+                    version[dst] += 1
         for f in range(len(f_slit)):
             k = f_slit[f]
             r1 = r2 = np.inf
@@ -190,9 +206,11 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
                     r2 = r
             for q in range(f_start[f], f_start[f + 1]):
                 x = min(f_cost[f], r2 if q == i1 else r1)
-                new = damping * orm[q] + (1.0 - damping) * x
+                new = x
                 moved = max(moved, abs(new - orm[q]))
                 i = f_cand[q]
+                if abs(new - orm[q]) > _QUIET:
+                    version[i] += 1
                 # the message favours k by orm: the other labels lose it
                 for l in range(nl):
                     if l != k:
@@ -213,10 +231,10 @@ def _propagate_pair(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change,
     for i in prange(out.shape[0]):
         if i == 0:
             b, _, _ = _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change,
-                                 f_slit, f_cost, f_start, f_cand, _SWEEPS, _DAMPING)  # fmt: skip
+                                 f_slit, f_cost, f_start, f_cand, _SWEEPS)  # fmt: skip
         else:
             b, _, _ = _propagate(unary, ga, gb, theta, penalty, split, ca2, cb2, bonus2, change2,
-                                 f_slit, f_cost, f_start, f_cand, _SWEEPS, _DAMPING)  # fmt: skip
+                                 f_slit, f_cost, f_start, f_cand, _SWEEPS)  # fmt: skip
         out[i] = b
     if second:
         return out[0], out[1]
