@@ -20,6 +20,7 @@ from multislit.errors import IdentificationError, MeasurementError
 from multislit.identify import IdentifyOptions, identify
 from multislit.identify.evidence import dot_evidence, frame_dots, window_stripes
 from multislit.identify.frame import synthetic_rig
+from multislit.identify.geometric import _near_changes
 from multislit.identify.graph import label_pieces
 from multislit.identify.pieces import gaps, gaps_across, group_medians, windows
 from multislit.identify.result import SOURCES
@@ -293,6 +294,32 @@ def test_the_labelling_of_a_chain_is_its_max_marginals(unary, kinds, terms):
     got = lab.belief - lab.belief.max(axis=1, keepdims=True)
     want = best - best.max(axis=1, keepdims=True)
     np.testing.assert_allclose(got, want, atol=0.02)
+
+
+@pytest.mark.parametrize(
+    ("cut", "labels", "left_out"),
+    [
+        (False, (3, 4), (16, 31)),  # two windows of one piece: the rows next to the change
+        (True, (3, 4), (16, 31)),  # across a cut of the linked stripe: the same
+        (True, (3, 3), None),  # one slit across the cut: nothing left out
+        (True, (3, -1), None),  # the window after the cut not labelled: nothing to leave out
+    ],
+)
+def test_rows_next_to_a_change_of_slit_along_a_stripe_are_left_out(cut, labels, left_out):
+    """A linked stripe of 48 rows in two windows of 24 (one piece, or two pieces across a cut
+    at row 24): where their slits differ, the points within 8 rows of their boundary (rows 16
+    to 31) are left out, whether or not the stripe was cut there."""
+    along = np.arange(48, dtype=np.float64)
+    segment = np.where(along < 24, 0, 1) if cut else np.zeros(48, np.int64)
+    win = windows(segment.astype(np.int64), along, 24)
+    assert win.num_windows == 2
+    out = _near_changes(along, win, np.array(labels), np.zeros(2, np.int64))
+    want = np.zeros(48, bool)
+    if left_out is not None:
+        want[left_out[0] : left_out[1] + 1] = True
+    assert out.tolist() == want.tolist()
+    # two stripes that only follow one another in the index are not one stripe
+    assert not _near_changes(along, win, np.array(labels), np.array([0, 1])).any()
 
 
 def test_the_evidence_does_not_depend_on_the_threads(frame):

@@ -253,9 +253,9 @@ def identify_geometry(
     has = window >= 0
     slit[has] = label[window[has]]
     conf[has] = np.where(slit[has] >= 0, lab.confidence[window[has]], 0.0)
-    # where a segment's slit changes between two windows, the change lies somewhere in them:
-    # the rows next to their boundary are left out
-    slit[_near_changes(along, win, label)] = -1
+    # where a linked stripe's slit changes between two windows (within a piece or across a cut),
+    # the change lies somewhere in them: the rows next to their boundary are left out
+    slit[_near_changes(along, win, label, linked)] = -1
     conf[slit < 0] = 0.0
     return Identification(
         ex.u,
@@ -292,21 +292,25 @@ def _calibrated(scores: F64) -> F64:
     return scores - max(bias, 0.0)
 
 
-def _near_changes(along: F64, win: Windows, label: I64) -> NDArray[np.bool_]:
+def _near_changes(along: F64, win: Windows, label: I64, linked: I64) -> NDArray[np.bool_]:
     """(K,) bool: the points within :data:`_JUNCTION_ROWS` rows (columns, for a segment found
     along the columns; ``along`` (K,) px, the position along the stripe) of a boundary between
-    two windows of one segment whose labels differ (both labelled)."""
+    two windows next to each other along one linked stripe whose labels differ (both
+    labelled). ``linked`` (W,): each window's linked stripe (the extraction's segment), so a
+    boundary at a cut (a brightness step, a kink: where a change is likeliest) counts as one
+    within a piece."""
     out = np.zeros(len(along), bool)
-    nxt = np.flatnonzero(
-        (win.segment[1:] == win.segment[:-1])
-        & (label[1:] != label[:-1])
-        & (label[1:] >= 0)
-        & (label[:-1] >= 0)
-    )
-    for w in nxt:  # the boundary: between window w's last point and w + 1's first
-        a = win.order[win.start[w] : win.start[w + 2]]
-        mid = 0.5 * (along[win.order[win.start[w + 1] - 1]] + along[win.order[win.start[w + 1]]])
-        out[a[np.abs(along[a] - mid) <= _JUNCTION_ROWS]] = True
+    head = win.order[win.start[:-1]]
+    o = np.lexsort((along[head], linked))
+    a, b = o[:-1], o[1:]
+    changes = np.flatnonzero((linked[a] == linked[b]) & (linked[a] >= 0) & (label[a] != label[b]))
+    changes = changes[(label[a[changes]] >= 0) & (label[b[changes]] >= 0)]
+    for i in changes:  # the boundary: between window a's last point and b's first
+        pa = win.order[win.start[a[i]] : win.start[a[i] + 1]]
+        pb = win.order[win.start[b[i]] : win.start[b[i] + 1]]
+        mid = 0.5 * (along[pa].max() + along[pb].min())
+        both = np.r_[pa, pb]
+        out[both[np.abs(along[both] - mid) <= _JUNCTION_ROWS]] = True
     return out
 
 
