@@ -272,16 +272,16 @@ def continuations(u: F64, v: F64, piece: I64, max_rows: int, max_du: float) -> t
     # candidates: every first point within max_rows below each last point
     fo = np.argsort(v[first], kind="stable")
     fv = v[first][fo]
-    out_a, out_b = [], []
-    for i, e in enumerate(last):
-        lo = np.searchsorted(fv, v[e], side="right")
-        hi = np.searchsorted(fv, v[e] + max_rows, side="right")
-        c = fo[lo:hi]
-        dv = v[first[c]] - v[e]
-        ok = (np.abs(u[first[c]] - u[e]) <= max_du + 0.5 * dv) & (ids[c] != ids[i])
-        out_a.extend([ids[i]] * int(ok.sum()))
-        out_b.extend(ids[c[ok]].tolist())
-    return np.array(out_a, np.int64), np.array(out_b, np.int64)
+    lo = np.searchsorted(fv, v[last], side="right")
+    hi = np.searchsorted(fv, v[last] + max_rows, side="right")
+    # every (last point i, candidate first point c) pair, i in order, c in fo's order
+    n = hi - lo
+    i = np.repeat(np.arange(len(last)), n)
+    c = fo[np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n) + np.repeat(lo, n)]
+    e = last[i]
+    dv = v[first[c]] - v[e]
+    ok = (np.abs(u[first[c]] - u[e]) <= max_du + 0.5 * dv) & (ids[c] != ids[i])
+    return ids[i[ok]].astype(np.int64), ids[c[ok]].astype(np.int64)
 
 
 @njit(cache=True)
