@@ -16,11 +16,11 @@ Every piece gets the slit of the labelling that maximises
   vouch (across a place where two slits' stripes may meet): a piece whose slit rests on
   them alone is left out.
 
-The labelling is found by loopy belief propagation (max-product, run until its messages
-settle), which gives every
-piece its belief per label; the confidence of a piece's label is its belief's share
-(softmax) against every other slit; the support of a label is the own evidence summed over
-the group of pieces the labelling ties together. A piece whose best slit has less than the
+The labelling is found by loopy belief propagation (max-product, undamped, for at most
+:data:`_SWEEPS` sweeps: on loops of pieces its messages may keep cycling instead of settling),
+which gives every piece its belief per label; the confidence of a piece's label is its
+belief's share (softmax) against every other slit; the support of a label is the own evidence
+summed over the group of pieces the labelling ties together. A piece whose best slit has less than the
 required confidence or support is left out, never guessed.
 
 Units: log-likelihood (nats).
