@@ -22,7 +22,7 @@ from multislit.identify.evidence import dot_evidence, frame_dots, window_stripes
 from multislit.identify.frame import synthetic_rig
 from multislit.identify.geometric import _near_changes
 from multislit.identify.graph import label_pieces
-from multislit.identify.pieces import gaps, gaps_across, group_medians, windows
+from multislit.identify.pieces import continuations, gaps, gaps_across, group_medians, windows
 from multislit.identify.result import SOURCES
 from multislit.reconstruct import ScanOptions, rig_of
 from multislit.sim.evaluate import identification_metrics
@@ -146,6 +146,38 @@ def test_gaps_across_stripes_that_lean_towards_the_horizontal():
     assert g.num_gaps == gaps(u, v, piece, 30.0, 3).num_gaps
     none = gaps(u, v, np.full(160, -1), 30.0, 3)
     assert none.num_gaps == 0 and none.a_start.tolist() == [0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(-1, 6), st.integers(0, 40), st.floats(0.0, 30.0)),
+        max_size=60,
+    )
+)
+def test_continuations_are_the_pieces_that_start_below_another_s_end(points):
+    """Piece b continues piece a when b's first point lies 0 < dv <= 12 rows below a's last
+    and within 4 px + dv / 2 of its column: every such pair, each once per (a, b), none else."""
+    piece = np.array([p[0] for p in points], np.int64)
+    v = np.array([p[1] for p in points], np.float64)
+    u = np.array([p[2] for p in points], np.float64)
+    a, b = continuations(u, v, piece, 12, 4.0)
+    want = set()
+    ids = np.unique(piece[piece >= 0])
+    for pa in ids:
+        m = np.flatnonzero(piece == pa)
+        last = m[np.lexsort((m, v[m]))][-1]
+        for pb in ids:
+            if pb == pa:
+                continue
+            n = np.flatnonzero(piece == pb)
+            first = n[np.lexsort((n, v[n]))][0]
+            dv = v[first] - v[last]
+            if 0 < dv <= 12 and abs(u[first] - u[last]) <= 4.0 + 0.5 * dv:
+                want.add((int(pa), int(pb)))
+    got = list(zip(a.tolist(), b.tolist(), strict=True))
+    assert len(got) == len(set(got))
+    assert set(got) == want
 
 
 @settings(max_examples=60, deadline=None)
