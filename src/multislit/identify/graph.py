@@ -20,8 +20,8 @@ The labelling is found by loopy belief propagation (max-product, undamped, for a
 :data:`_SWEEPS` sweeps: on loops of pieces its messages may keep cycling instead of settling),
 which gives every piece its belief per label; the confidence of a piece's label is its
 belief's share (softmax) against every other slit; the support of a label is the own evidence
-summed over the group of pieces the labelling ties together. A piece whose best slit has less than the
-required confidence or support is left out, never guessed.
+summed over the group of pieces the labelling ties together. A piece whose best slit has less
+than the required confidence or support is left out, never guessed.
 
 Units: log-likelihood (nats).
 """
@@ -206,16 +206,15 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
                     r2 = r
             for q in range(f_start[f], f_start[f + 1]):
                 x = min(f_cost[f], r2 if q == i1 else r1)
-                new = x
-                moved = max(moved, abs(new - orm[q]))
+                moved = max(moved, abs(x - orm[q]))
                 i = f_cand[q]
-                if abs(new - orm[q]) > _QUIET:
+                if abs(x - orm[q]) > _QUIET:
                     version[i] += 1
                 # the message favours k by orm: the other labels lose it
                 for l in range(nl):
                     if l != k:
-                        belief[i, l] -= new - orm[q]
-                orm[q] = new
+                        belief[i, l] -= x - orm[q]
+                orm[q] = x
         if moved < _SETTLED:
             break
     return belief, fwd, bwd
