@@ -59,6 +59,12 @@ class Windows:
         return out
 
 
+def _within_runs(n: I64) -> I64:
+    """(sum(n),) int64: each item's place within its run, for runs of ``n`` (R,) items laid
+    one after the other (0 .. n[0] - 1, then 0 .. n[1] - 1, ...)."""
+    return np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+
+
 def windows(segment: I64, along: F64, rows: int) -> Windows:
     """The linked points (``segment >= 0``) in windows of about ``rows`` points each: a
     segment of n points gets ``max(1, round(n / rows))`` windows of nearly equal size.
@@ -81,7 +87,7 @@ def windows(segment: I64, along: F64, rows: int) -> Windows:
     nwin = np.maximum(1, np.rint(n / max(1, rows)).astype(np.int64))
     # window j of a segment of n points with m windows ends at round(n (j + 1) / m)
     seg_of_win = np.repeat(np.arange(len(n)), nwin)
-    j = np.arange(int(nwin.sum())) - np.repeat(np.cumsum(nwin) - nwin, nwin)
+    j = _within_runs(nwin)
     ends = bounds[seg_of_win] + np.rint(n[seg_of_win] * (j + 1) / nwin[seg_of_win]).astype(np.int64)
     start = np.r_[0, ends].astype(np.int64)
     return Windows(lk.astype(np.int64), start, seg[bounds[:-1]][seg_of_win], seg_of_win)
@@ -277,7 +283,7 @@ def continuations(u: F64, v: F64, piece: I64, max_rows: int, max_du: float) -> t
     # every (last point i, candidate first point c) pair, i in order, c in fo's order
     n = hi - lo
     i = np.repeat(np.arange(len(last)), n)
-    c = fo[np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n) + np.repeat(lo, n)]
+    c = fo[np.repeat(lo, n) + _within_runs(n)]
     e = last[i]
     dv = v[first[c]] - v[e]
     ok = (np.abs(u[first[c]] - u[e]) <= max_du + 0.5 * dv) & (ids[c] != ids[i])
