@@ -206,14 +206,15 @@ def _propagate(unary, ga, gb, theta, penalty, split, ca, cb, bonus, change, f_sl
                     r2 = r
             for q in range(f_start[f], f_start[f + 1]):
                 x = min(f_cost[f], r2 if q == i1 else r1)
-                moved = max(moved, abs(x - orm[q]))
+                d = x - orm[q]
+                moved = max(moved, abs(d))
                 i = f_cand[q]
-                if abs(x - orm[q]) > _QUIET:
+                if abs(d) > _QUIET:
                     version[i] += 1
                 # the message favours k by orm: the other labels lose it
                 for l in range(nl):
                     if l != k:
-                        belief[i, l] -= x - orm[q]
+                        belief[i, l] -= d
                 orm[q] = x
         if moved < _SETTLED:
             break
