@@ -126,3 +126,54 @@ def test_a_wide_speckled_stripe_is_one_segment(seed):
         # one or two segments hold (nearly) the whole stripe, the longer most of it
         assert ids.size <= 2 and counts.sum() >= 0.95 * centre.shape[1], (ids, counts)
         assert counts.max() >= 0.55 * centre.shape[1], (ids, counts)
+
+
+def _short_pieces(seed, *, rows=12, amp=90.0, speckle=0.15, sigma=1.4):
+    """An 8-bit image of 4 bands of 10 short stripe pieces each (``rows`` rows, like the
+    stripes on a staircase's treads), peak ``amp`` DN, leaning up to 0.3 px per row, with laser
+    speckle of contrast ``speckle``, on a background of 40 DN with a noise sigma of 2 DN.
+    Returns the image and each piece's rows and true centres."""
+    rng = np.random.default_rng(seed)
+    h, w = 160, 240
+    laser = np.zeros((h, w))
+    pieces = []
+    for band in range(4):
+        top = 15 + band * 36 + int(rng.integers(-3, 4))
+        for j in range(10):
+            u0 = 12 + j * 22 + rng.uniform(-2, 2) + 5 * band
+            v = np.arange(top, top + rows)
+            c = u0 + rng.uniform(-0.3, 0.3) * (v - v.mean())
+            laser[v] += amp * _pixel_gauss(np.arange(w, dtype=float)[None, :], c[:, None], sigma)
+            pieces.append((v, c))
+    g = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 0.8)
+    laser *= np.clip(1.0 + speckle * g / g.std(), 0.0, None)
+    img = 40.0 + laser + rng.normal(0.0, 2.0, (h, w))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), pieces
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_short_speckled_pieces_are_kept(seed):
+    # on a piece shorter than two opening lines the speckle flags nearly every pixel as a dot,
+    # and one run of dot pixels spans the piece; the clean pixels above and below it are
+    # background, and their interpolation erased the piece. Measured on seeds 0, 1, 2: 80, 80,
+    # 78 % of the pieces' rows found (38-48 % when the run is interpolated)
+    img, pieces = _short_pieces(seed)
+    ex = extract_slits(img, stripe_width_px=1.4 * FWHM_PER_SIGMA, dot_size_px=1.9)
+    lk = ex.segment >= 0
+    u, v = ex.u[lk], np.rint(ex.v[lk]).astype(int)
+    found = []
+    for rows, centre in pieces:
+        near = (v[None, :] == rows[:, None]) & (np.abs(u[None, :] - centre[:, None]) <= 1.0)
+        found.append(near.any(axis=1).mean())
+    assert np.mean(found) >= 0.7, np.round(found, 2)
+    # on the pieces, not beside them (a point may lie a row or two beyond a piece's end):
+    # measured 0-2 of about 400 points more than 2 px off (erased but for a column or two,
+    # 42-78 were)
+    off = np.min(
+        [
+            np.abs(u - np.interp(v, rows, centre)) + 100 * ((v < rows[0] - 2) | (v > rows[-1] + 2))
+            for rows, centre in pieces
+        ],
+        axis=0,
+    )
+    assert np.mean(off > 2.0) <= 0.02 and np.all(off <= 3.0), np.sort(off)[-10:]

@@ -335,8 +335,8 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
     interpolated between the clean pixels t rows above and n + 1 - t rows below, shifted
     sideways along the stripe by the run's slope (``slopes`` (K,) float32 px per row; (0,) for
     straight above and below) and read by linear interpolation along their rows, no lower
-    than the opening within ``end_rows`` of a stripe's end (:func:`_blend`); ``rint``: round,
-    for integer images."""
+    than the opening within ``end_rows`` of a stripe's end and over a run that is a whole
+    stripe piece (:func:`_blend`); ``rint``: round, for integer images."""
     h, w = hp.shape
     for i in range(cols.size):
         c = cols[i]
@@ -348,6 +348,14 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
                 out[q, c] = opened[q, c]
             continue
         den = float(np.float32(n + 1))
+        # a run whose opening keeps at least half its brightest pixel is a stripe piece
+        # (speckle flagged on all of it), not dots on a faint string of their own tails
+        fmax = 0.0
+        hmax = 0.0
+        for q in range(start, stop):
+            fmax = max(fmax, float(opened[q, c]))
+            hmax = max(hmax, float(hp[q, c]))
+        whole = 2.0 * fmax >= hmax
         if slopes.size == 0:  # straight above and below
             above = np.float32(hp[start - 1, c])
             below = np.float32(hp[stop, c])
@@ -362,6 +370,7 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
                     t,
                     n + 1,
                     end_rows,
+                    whole,
                 )
             continue
         s = float(slopes[i])
@@ -381,6 +390,7 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
                     t,
                     n + 1,
                     end_rows,
+                    whole,
                 )
             continue
         for t in range(1, n + 1):
@@ -396,23 +406,28 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
                 t,
                 n + 1,
                 end_rows,
+                whole,
             )
 
 
 @njit(cache=True, inline="always")
-def _blend(above, below, frac, rint, here, floor, t, n1, end_rows):
+def _blend(above, below, frac, rint, here, floor, t, n1, end_rows, whole):
     """A refilled dot pixel of :func:`_fill_runs`, ``t`` rows below the sample ``above`` and
     ``n1`` - ``t`` above ``below``: ``above`` + (``below`` - ``above``) (in float32) times
     ``frac``, rounded where ``rint``, no darker than the opening ``floor`` where one sample
     reaches half of it and the other does not (a stripe's end) and the pixel is at most
-    ``end_rows`` from the one that does, and no brighter than the pixel ``here``."""
+    ``end_rows`` from the one that does, or where neither does and the run is ``whole`` (a
+    stripe piece whose every pixel the speckle flagged), and no brighter than the pixel
+    ``here``."""
     val = float(above) + float(np.float32(below - above)) * frac
     if rint:
         val = np.rint(val)
     if end_rows > 0:
         a, b, f = float(above), float(below), float(floor)
-        if (2.0 * a >= f > 2.0 * b and t <= end_rows) or (
-            2.0 * b >= f > 2.0 * a and n1 - t <= end_rows
+        if (
+            (2.0 * a >= f > 2.0 * b and t <= end_rows)
+            or (2.0 * b >= f > 2.0 * a and n1 - t <= end_rows)
+            or (whole and f > 2.0 * a and f > 2.0 * b)
         ):
             val = max(val, f)
     return min(val, float(here))
@@ -491,9 +506,14 @@ def fill_dots(
     the opening over half the line's length from the stripe's side: near a stripe's end the
     sample beyond it is background, and the ramp down to it would cut the stripe's last rows
     out (the opening, a line of ``length`` px inside the stripe, keeps them; a dot is shorter
-    than the line); between two background samples (dots one above another off the stripes,
-    whose opening the line fits inside) it is not; and no further (where the stripe meets
-    another one at an occlusion, its end kept whole would bridge the gap between them).
+    than the line); and no further (where the stripe meets another one at an occlusion, its
+    end kept whole would bridge the gap between them). Between two background samples it is
+    taken no lower than the opening only where the run is a whole stripe piece: the opening
+    keeps at least half of the run's brightest pixel. On a stripe piece shorter than two lines
+    the laser speckle flags nearly every pixel (the test allows for noise, not for speckle),
+    and the interpolation between the background above and below it would erase the piece;
+    dots one above another off the stripes, whose opening is the faint string of their own
+    tails, stay interpolated.
     The result is clipped to ``hp`` so that ``hp - slits >= 0``. One compiled pass over the
     dot mask.
 
