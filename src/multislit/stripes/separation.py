@@ -348,14 +348,17 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
                 out[q, c] = opened[q, c]
             continue
         den = float(np.float32(n + 1))
-        # a run whose opening keeps at least half its brightest pixel is a stripe piece
-        # (speckle flagged on all of it), not dots on a faint string of their own tails
-        fmax = 0.0
-        hmax = 0.0
-        for q in range(start, stop):
-            fmax = max(fmax, float(opened[q, c]))
-            hmax = max(hmax, float(hp[q, c]))
-        whole = 2.0 * fmax >= hmax
+        # a run at least a line long whose opening keeps at least half its brightest pixel is
+        # a stripe piece (speckle flagged on all of it), not dots on a faint string of their
+        # own tails (a shorter run holds no line, so its opening keeps nothing of a piece)
+        whole = False
+        if 2 * n >= lim:
+            fmax = 0.0
+            hmax = 0.0
+            for q in range(start, stop):
+                fmax = max(fmax, float(opened[q, c]))
+                hmax = max(hmax, float(hp[q, c]))
+            whole = 2.0 * fmax >= hmax
         if slopes.size == 0:  # straight above and below
             above = np.float32(hp[start - 1, c])
             below = np.float32(hp[stop, c])
