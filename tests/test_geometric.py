@@ -20,7 +20,7 @@ from multislit.errors import IdentificationError, MeasurementError
 from multislit.identify import IdentifyOptions, identify
 from multislit.identify.evidence import dot_evidence, frame_dots, window_stripes
 from multislit.identify.frame import synthetic_rig
-from multislit.identify.geometric import _near_changes
+from multislit.identify.geometric import _brightness_ratio, _near_changes, _regularity
 from multislit.identify.graph import label_pieces
 from multislit.identify.pieces import continuations, gaps, gaps_across, group_medians, windows
 from multislit.identify.result import SOURCES
@@ -118,6 +118,28 @@ def test_gaps_pair_the_pieces_side_by_side_and_measure_their_spacing():
     # farther apart than max_gap_px: no gap
     near = gaps(u, v, piece, 20.0, 3)
     assert (2, 3) not in zip(near.a.tolist(), near.b.tolist(), strict=True)
+
+
+def test_a_gap_between_unlike_stripes_couples_less():
+    """Four vertical stripes 10 px apart over 20 rows, the third twice and the fourth six
+    times as bright as the first (with a dot on the first in one row): each gap's brightness
+    ratio is that of its stripes' median peaks, and a gap's coupling weight falls with the
+    ratio as with an irregular width; a gap of like stripes and regular width weighs 1."""
+    v = np.repeat(np.arange(20.0), 4)
+    u = np.tile([100.0, 110.0, 120.0, 130.0], 20)
+    piece = np.tile(np.arange(4), 20).astype(np.int64)
+    peak = np.tile([10.0, 10.0, 20.0, 120.0], 20)
+    peak[4 * 7] = 200.0  # a dot on the first stripe: the median keeps it out
+    g = gaps(u, v, piece, max_gap_px=30.0, min_rows=3)
+    pairs = list(zip(g.a.tolist(), g.b.tolist(), strict=True))
+    ratio = dict(zip(pairs, _brightness_ratio(peak, g), strict=True))
+    assert ratio[(0, 1)] == pytest.approx(1.0)
+    assert ratio[(1, 2)] == pytest.approx(0.5) and ratio[(2, 3)] == pytest.approx(1 / 6)
+    w = _regularity(np.array([1.0, 1.0, 1.0, 1.3, np.nan]), np.array([1.0, 0.5, 1 / 6, 1.0, 2.0]))
+    assert w[0] == pytest.approx(1.0)
+    assert 1.0 > w[1] > w[2] > 0.0 and w[2] < 0.4
+    assert w[3] == pytest.approx(np.exp(-0.5))  # a width off by the spacing tolerance
+    assert w[1] == pytest.approx(w[4])  # no gap beside: the brightness alone
 
 
 def test_gaps_across_stripes_that_lean_towards_the_horizontal():

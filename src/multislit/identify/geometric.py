@@ -37,9 +37,11 @@ from multislit.identify.evidence import (
 from multislit.identify.graph import confidence_margin, label_pieces
 from multislit.identify.options import IdentifyOptions
 from multislit.identify.pieces import (
+    Gaps,
     Windows,
     continuations,
     gaps_across,
+    group_medians,
     split_at_kinks,
     windows,
 )
@@ -79,6 +81,9 @@ _COUPLING = 6.0
 #: ... less where the gap's width is off the widths of the gaps beside it by more than this
 #: factor (a Gaussian in the log of the ratio) ...
 _SPACING_TOLERANCE = 1.3
+#: ... or where its two stripes' brightness differs by more than this factor (the same): stripes
+#: of one surface look alike, one beside an object's edge often does not ...
+_BRIGHTNESS_TOLERANCE = 2.2
 #: ... and none where that surface meets a line of sight at less than acos(this).
 _GRAZE = 0.97
 #: Log-likelihood a gap loses when both its pieces carry one slit ...
@@ -189,10 +194,10 @@ def identify_geometry(
     ca, cb, bonus, change, vouch = _continuations(ex, ex.segment.astype(np.int64), segment, win)
     # the dots between them count where scored; elsewhere the pieces' own evidence stands
     between = np.where(np.isfinite(ge.fixed), ge.bonus, 0.0).astype(np.float64)
-    # a gap much wider or narrower than those beside it is a step between two surfaces more
-    # often than a stretch of one: its coupling weighs less
-    lr = np.log(gp.spacing_ratio) / math.log(_SPACING_TOLERANCE)
-    regular = np.where(np.isfinite(lr), np.exp(-0.5 * lr**2), 1.0)
+    # a gap much wider or narrower than those beside it, or between stripes of much unlike
+    # brightness, is a step between two surfaces more often than a stretch of one: its coupling
+    # weighs less
+    regular = _regularity(gp.spacing_ratio, _brightness_ratio(ex.peak, gp))
 
     def labelling(factors=None, ties=vouch):
         return label_pieces(
@@ -274,6 +279,32 @@ def identify_geometry(
         "geometry",
         dots,
     )
+
+
+def _brightness_ratio(peak: F64, gp: Gaps) -> F64:
+    """(G,) each gap's left stripe's brightness over its right one's: the ratio of the
+    medians of their peaks (``peak`` (K,), per point) over the rows they share."""
+    n = np.diff(gp.a_start)
+    gap = np.repeat(np.arange(gp.num_gaps), n)
+    la = group_medians(np.log(np.maximum(peak[gp.a_order], 1e-9)), gap, gp.num_gaps)
+    lb = group_medians(np.log(np.maximum(peak[gp.b_order], 1e-9)), gap, gp.num_gaps)
+    return np.exp(la - lb)
+
+
+def _regularity(spacing_ratio: F64, brightness_ratio: F64) -> F64:
+    """(G,) 0..1, the weight of each gap's coupling: a Gaussian in the log of its width's
+    ratio to the widths beside it (scale log :data:`_SPACING_TOLERANCE`; 1 where none is
+    beside it) times one in the log of its stripes' brightness ratio (scale log
+    :data:`_BRIGHTNESS_TOLERANCE`)."""
+    out = np.ones(len(spacing_ratio))
+    for ratio, tol in (
+        (spacing_ratio, _SPACING_TOLERANCE),
+        (brightness_ratio, _BRIGHTNESS_TOLERANCE),
+    ):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.log(ratio) / math.log(tol)
+        out *= np.where(np.isfinite(x), np.exp(-0.5 * x**2), 1.0)
+    return out
 
 
 def _calibrated(scores: F64) -> F64:
