@@ -122,14 +122,14 @@ def test_gaps_pair_the_pieces_side_by_side_and_measure_their_spacing():
 
 def test_a_gap_between_unlike_stripes_couples_less():
     """Four vertical stripes 10 px apart over 20 rows, the third twice and the fourth six
-    times as bright as the first (with a dot on the first in one row): each gap's brightness
-    ratio is that of its stripes' median peaks, and a gap's coupling weight falls with the
+    times as bright as the first (their peaks varying along them): each gap's brightness ratio
+    is that of its stripes' geometric mean peaks, and a gap's coupling weight falls with the
     ratio as with an irregular width; a gap of like stripes and regular width weighs 1."""
     v = np.repeat(np.arange(20.0), 4)
     u = np.tile([100.0, 110.0, 120.0, 130.0], 20)
     piece = np.tile(np.arange(4), 20).astype(np.int64)
-    peak = np.tile([10.0, 10.0, 20.0, 120.0], 20)
-    peak[4 * 7] = 200.0  # a dot on the first stripe: the median keeps it out
+    shade = np.repeat(np.linspace(0.5, 1.5, 20), 4)  # the same along every stripe
+    peak = np.tile([10.0, 10.0, 20.0, 120.0], 20) * shade
     g = gaps(u, v, piece, max_gap_px=30.0, min_rows=3)
     pairs = list(zip(g.a.tolist(), g.b.tolist(), strict=True))
     ratio = dict(zip(pairs, _brightness_ratio(peak, g), strict=True))

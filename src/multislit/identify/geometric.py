@@ -41,7 +41,6 @@ from multislit.identify.pieces import (
     Windows,
     continuations,
     gaps_across,
-    group_medians,
     split_at_kinks,
     windows,
 )
@@ -283,12 +282,11 @@ def identify_geometry(
 
 def _brightness_ratio(peak: F64, gp: Gaps) -> F64:
     """(G,) each gap's left stripe's brightness over its right one's: the ratio of the
-    medians of their peaks (``peak`` (K,), per point) over the rows they share."""
+    geometric means of their peaks (``peak`` (K,), per point) over the rows they share."""
     n = np.diff(gp.a_start)
     gap = np.repeat(np.arange(gp.num_gaps), n)
-    la = group_medians(np.log(np.maximum(peak[gp.a_order], 1e-9)), gap, gp.num_gaps)
-    lb = group_medians(np.log(np.maximum(peak[gp.b_order], 1e-9)), gap, gp.num_gaps)
-    return np.exp(la - lb)
+    d = np.log(np.maximum(peak[gp.a_order], 1e-9) / np.maximum(peak[gp.b_order], 1e-9))
+    return np.exp(np.bincount(gap, d, minlength=gp.num_gaps) / np.maximum(n, 1))
 
 
 def _regularity(spacing_ratio: F64, brightness_ratio: F64) -> F64:
