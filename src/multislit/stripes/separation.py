@@ -350,9 +350,10 @@ def _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows
         den = float(np.float32(n + 1))
         # a run at least a line long whose opening keeps at least half its brightest pixel is
         # a stripe piece (speckle flagged on all of it), not dots on a faint string of their
-        # own tails (a shorter run holds no line, so its opening keeps nothing of a piece)
+        # own tails (a shorter run holds no line, so its opening keeps nothing of a piece);
+        # only the stripes' ends kept (``end_rows``) read it
         whole = False
-        if 2 * n >= lim:
+        if end_rows > 0 and 2 * n >= lim:
             fmax = 0.0
             hmax = 0.0
             for q in range(start, stop):
