@@ -83,6 +83,14 @@ def test_the_frame_s_labels_say_where_they_came_from(frame):
     assert np.all((pl.slit >= 0) == (pl.source > 0))
     lab = ident.slit >= 0
     assert np.all(pl.slit[ident.segment[lab]] == ident.slit[lab])
+    # every piece left out is counted once, under one reason
+    assert set(ident.dropped) == {
+        "out_of_volume",
+        "rests_on_a_cut",
+        "too_little_evidence",
+        "low_confidence",
+    }
+    assert sum(ident.dropped.values()) == np.count_nonzero(pl.slit < 0) > 0
     # and the labels are right: the wall and the objects of the half-size scans together
     t = _true_slit(truth, ident.u[lab], ident.v[lab])
     known = t >= 0
@@ -293,6 +301,38 @@ def test_two_stripes_side_by_side_couple_once_however_long():
     assert each.slit[4:].tolist() == [2] * 4
     assert once.slit[4:].tolist() == [5] * 4
     assert each.slit[:4].tolist() == once.slit[:4].tolist() == [1] * 4
+
+
+@pytest.mark.parametrize("vouches", [False, True])
+def test_a_slit_that_rests_on_a_cut_alone_is_named_so(vouches):
+    """Two pieces joined by a continuation: the first one's dots say slit 2 (20 nats), the
+    second's say nothing. Across a continuation that vouches the second takes slit 2 with it;
+    across one that does not (a cut, where two slits' stripes may meet) its slit 2 rests on
+    the continuation alone: confidence 0, and the labelling says why."""
+    n = 5
+    unary = np.zeros((2, n))
+    unary[0, 2] = 20.0
+    none = np.zeros(0, np.int64)
+    lab = label_pieces(
+        unary,
+        none,
+        none,
+        np.zeros((0, n)),
+        np.zeros((0, n), bool),
+        none,
+        np.array([0]),
+        np.array([1]),
+        np.array([5.0]),
+        np.array([0.0]),
+        coupling=6.0,
+        repeat_penalty=30.0,
+        split_penalty=1.5,
+        cont_ties=np.array([vouches]),
+    )
+    assert lab.slit.tolist() == [2, 2]
+    assert lab.rests_on_cut.tolist() == [False, not vouches]
+    assert (lab.confidence[1] == 0.0) == (not vouches)
+    assert lab.confidence[0] > 0.99
 
 
 def _chain_score(labels, unary, kinds, coupling, penalty, split, bonus, change):

@@ -92,6 +92,11 @@ _SPLIT = 1.5
 #: A window is labelled only when the dots' evidence of the group of windows its label ties it
 #: to (neighbouring slits of one surface, continuations of one slit) reaches this (nats).
 _MIN_SUPPORT = 8.0
+#: Why a piece with slits in the measuring volume is left out: its slit rests on a
+#: continuation across a cut alone (:func:`_continuations`), the dots of the group of pieces
+#: its label ties it to say less than :data:`_MIN_SUPPORT`, or its confidence is below the
+#: required one.
+_LEFT_OUT = ("rests_on_a_cut", "too_little_evidence", "low_confidence")
 #: The windows' slits of the lowest evidence (from the rank on) measure the frame's evidence
 #: under wrong slits, which is taken out of every window's so that chance does not add up.
 _NULL_RANK = 4
@@ -236,8 +241,19 @@ def identify_geometry(
     piece_of_window[o] = np.cumsum(new) - 1
     piece = np.full(k, -1, np.int64)
     piece[window >= 0] = piece_of_window[window[window >= 0]]
+    # why each window left out is: its slit rests on a cut alone, its group's dots say too
+    # little, or the labelling is not confident enough
+    why = np.where(
+        lab.rests_on_cut,
+        _LEFT_OUT.index("rests_on_a_cut"),
+        np.where(
+            lab.support < _MIN_SUPPORT,
+            _LEFT_OUT.index("too_little_evidence"),
+            _LEFT_OUT.index("low_confidence"),
+        ),
+    )
     pieces, dropped = _piece_labels(
-        scores, piece_of_window, label, lab.confidence, options.confidence
+        scores, piece_of_window, label, lab.confidence, options.confidence, why
     )
     lw = np.flatnonzero(label >= 0)
     dots = dot_matches(
@@ -391,11 +407,18 @@ def _continuations(
 
 
 def _piece_labels(
-    scores: F64, piece_of_window: I64, label: I64, confidence: F64, min_confidence: float
+    scores: F64,
+    piece_of_window: I64,
+    label: I64,
+    confidence: F64,
+    min_confidence: float,
+    why: I64,
 ) -> tuple[PieceLabels, dict[str, int]]:
     """Per piece (a run of windows with one label): its label and confidence (the least of
     its windows'), its own dots' preference and where its label came from; and the counts of
-    the pieces left out by reason."""
+    the pieces left out by reason: ``out_of_volume`` (every slit puts it outside the measuring
+    volume), else the reason (:data:`_LEFT_OUT`, ``why`` (W,) per window) of most of its
+    windows."""
     s = int(piece_of_window.max()) + 1
     n = scores.shape[1]
     own_scores = np.zeros((s, n))
@@ -419,8 +442,11 @@ def _piece_labels(
     source = np.zeros(s, np.int8)
     source[accepted] = SOURCES.index("its neighbours")
     source[by_dots] = SOURCES.index("its dots")
-    dropped = {
-        "out_of_volume": int(np.count_nonzero(~valid)),
-        "low_confidence": int(np.count_nonzero(valid & ~accepted)),
-    }
+    votes = np.zeros((s, len(_LEFT_OUT)), np.int64)
+    np.add.at(votes, (piece_of_window, why), 1)
+    reason = np.argmax(votes, axis=1)
+    left = valid & ~accepted
+    dropped = {"out_of_volume": int(np.count_nonzero(~valid))}
+    for i, name in enumerate(_LEFT_OUT):
+        dropped[name] = int(np.count_nonzero(left & (reason == i)))
     return PieceLabels(slit, conf, own.astype(np.int64), own_margin, source), dropped

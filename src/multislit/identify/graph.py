@@ -65,12 +65,15 @@ class Labelling:
     support : (S,) float64, nats, the dots' evidence for the labelling of the group of pieces
         it ties the piece to (by the gaps of neighbouring slits and the continuations of one
         slit): the sum of their own log-likelihood ratios for their labels
+    rests_on_cut : (S,) bool, the piece's best slit is another in the labelling without the
+        continuations that do not vouch: its slit rests on them alone (its confidence is 0)
     """
 
     slit: I64
     confidence: F64
     belief: F64
     support: F64
+    rests_on_cut: NDArray[np.bool_]
 
 
 @njit(cache=True)
@@ -358,11 +361,11 @@ def label_pieces(
     group = _groups(s, np.r_[ga[tied_gap], ca[tied_cont]], np.r_[gb[tied_gap], cb[tied_cont]])
     own = u[np.arange(s), best]
     support = np.bincount(group, weights=own, minlength=s)[group]
-    if keep is not None:
-        conf = np.where(np.argmax(alone, axis=1) == best, conf, 0.0)
+    rests = np.zeros(s, bool) if keep is None else np.argmax(alone, axis=1) != best
+    conf = np.where(rests, 0.0, conf)
     ruled_out = ~np.isfinite(unary[np.arange(s), best])
     slit = np.where(ruled_out, -1, best)
-    return Labelling(slit.astype(np.int64), conf, belief, support)
+    return Labelling(slit.astype(np.int64), conf, belief, support, rests & ~ruled_out)
 
 
 def _groups(n: int, a: I64, b: I64) -> I64:
