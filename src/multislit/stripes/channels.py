@@ -13,17 +13,14 @@ plane clipped in most rows is avoided.
 
 from __future__ import annotations
 
-import math
-
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.separation import (
-    OPENING_WIDTHS,
     clip_level,
     noise_from_difference,
     quantisation_step,
+    row_opening_background,
 )
 from multislit.stripes.sizes import estimate_stripe_width, sample_rows
 from multislit.stripes.validation import (
@@ -68,8 +65,7 @@ def _plane_score(plane: NDArray) -> tuple[float, float]:
         return 0.0, 0.0  # no ridge at all
     idx = sample_rows(plane.shape[0], _SAMPLE_ROWS)
     rows = np.ascontiguousarray(plane[idx], dtype=np.float32)
-    length = 2 * math.ceil(OPENING_WIDTHS * width / 2.0) + 1
-    hp = rows - cv2.morphologyEx(rows, cv2.MORPH_OPEN, np.ones((1, length), np.uint8))
+    hp = rows - row_opening_background(rows, width)
     r = np.arange(len(idx))
     k = np.argmax(hp, axis=1)
     peak = hp[r, k].astype(np.float64)
