@@ -179,10 +179,14 @@ def test_short_speckled_pieces_are_kept(seed):
     assert np.mean(off > 2.0) <= 0.02 and np.all(off <= 3.0), np.sort(off)[-10:]
 
 
-def _dense(seed, *, sigma=2.0, spacing=12.0, shape=(120, 240)):
-    """An 8-bit image of stripes of sigma ``sigma`` (px) ``spacing`` px apart (2.5 FWHMs, as on
-    a face the slits cross at a slant), bright (~90 DN) and dim (~30 DN) in turn, on a
-    background of 20 DN with a noise sigma of 1 DN. Returns the image, the true centres (n, H)
+#: The stripes' sigma (px) in :func:`_dense`.
+DENSE_SIGMA = 2.0
+
+
+def _dense(seed, *, spacing=12.0, shape=(120, 240)):
+    """An 8-bit image of stripes of sigma :data:`DENSE_SIGMA` ``spacing`` px apart (2.5
+    FWHMs, as on a face the slits cross at a slant), bright (~90 DN) and dim (~30 DN) in turn,
+    on a background of 20 DN with a noise sigma of 1 DN. Returns the image, the true centres (n, H)
     px and the peaks (n,) DN."""
     rng = np.random.default_rng(seed)
     h, w = shape
@@ -192,7 +196,7 @@ def _dense(seed, *, sigma=2.0, spacing=12.0, shape=(120, 240)):
     )[:, None] * (np.arange(h) - h / 2)
     amp = np.where(np.arange(n) % 2 == 0, 90.0, 30.0) * rng.uniform(0.9, 1.1, n)
     cols = np.arange(w, dtype=float)[None, :]
-    laser = sum(amp[k] * _pixel_gauss(cols, centre[k][:, None], sigma) for k in range(n))
+    laser = sum(amp[k] * _pixel_gauss(cols, centre[k][:, None], DENSE_SIGMA) for k in range(n))
     img = 20.0 + laser + rng.normal(0.0, 1.0, (h, w))
     return np.clip(np.rint(img), 0, 255).astype(np.uint8), centre, amp
 
@@ -211,10 +215,10 @@ DENSE_XFAIL = pytest.mark.xfail(
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dense_stripes_keep_their_height(seed):
     img, centre, amp = _dense(seed)
-    sw = 2.0 * FWHM_PER_SIGMA
     rows = np.arange(10, img.shape[0] - 10)
-    peak = _pixel_gauss(np.zeros(1), 0.0, 2.0)[0]  # a pixel's share of the peak at its centre
-    sep = separate(img, sw, 1.5)
+    # a pixel's share of the peak at its centre
+    peak = _pixel_gauss(np.zeros(1), 0.0, DENSE_SIGMA)[0]
+    sep = separate(img, DENSE_SIGMA * FWHM_PER_SIGMA, 1.5)
     for k in range(amp.size):
         kept = np.median(sep.slits[rows, np.rint(centre[k, rows]).astype(int)]) / (peak * amp[k])
         assert 0.8 <= kept <= 1.1, (k, kept)
@@ -224,7 +228,7 @@ def test_dense_stripes_keep_their_height(seed):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dim_stripes_between_bright_ones_are_found(seed):
     img, centre, _ = _dense(seed)
-    ex = extract_slits(img, stripe_width_px=2.0 * FWHM_PER_SIGMA, dot_size_px=1.5)
+    ex = extract_slits(img, stripe_width_px=DENSE_SIGMA * FWHM_PER_SIGMA, dot_size_px=1.5)
     found, dist = _found(ex, centre)
     assert found >= 0.95
     assert np.all(dist <= 1.0)
