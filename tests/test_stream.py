@@ -303,6 +303,50 @@ def test_frames_written_in_order_when_they_finish_out_of_order(tmp_path: Path):
         assert set(ply) == {"x", "y", "z", "u", "v", "slit", "confidence"}
 
 
+class _SwallowingRunner:
+    """Scans inline; Ctrl-C arrives while the second frame's result is fetched, inside a
+    finaliser-like ``except`` that swallows it (as a Dask future's ``__del__`` does)."""
+
+    capacity = 1
+
+    def __init__(self) -> None:
+        self.results = 0
+
+    def submit(self, image, name):
+        return _number(image)
+
+    def done(self, h):
+        return True
+
+    def result(self, h):
+        self.results += 1
+        if self.results == 2:
+            try:
+                signal.raise_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                pass
+        return _result(h)
+
+    def close(self):
+        pass
+
+
+def test_ctrl_c_swallowed_where_it_lands_still_stops_the_run(tmp_path: Path):
+    _numbered_folder(tmp_path / "in", 6)
+    runner = _SwallowingRunner()
+    with open_source(tmp_path / "in") as src:
+        writer = FrameWriter(tmp_path / "out")
+        with pytest.raises(KeyboardInterrupt):
+            run_frames(src, writer, runner, image_size=(32, 24))
+        writer.close()
+    # stopped after the frame during which it came, that frame written whole
+    assert runner.results == 2
+    assert [d["points"] for d in _index(tmp_path / "out")] == [1, 2]
+    # the run's own handler is gone: Ctrl-C outside a run raises where it lands again
+    with pytest.raises(KeyboardInterrupt):
+        signal.raise_signal(signal.SIGINT)
+
+
 def test_bad_frames_skipped_and_counted_or_stop(tmp_path: Path):
     _numbered_folder(tmp_path / "in", 3)
     cv2.imwrite(str(tmp_path / "in" / "img01b.png"), np.zeros((10, 10), np.uint8))  # wrong size

@@ -526,6 +526,55 @@ def run_frames(
         or empty: the reason of the first is named, after the frames are written); errors of
         the source or of a frame's scan.
     """
+    with _BetweenFrames() as check:
+        return _run_frames(
+            source, writer, runner, image_size, max_frames, on_bad_frame, progress, check
+        )
+
+
+class _BetweenFrames:
+    """A context in which Ctrl-C (SIGINT) is noted and raised as ``KeyboardInterrupt`` where
+    the run calls it (before each frame is read, after each is written), not at whatever line
+    it arrives: there it may land in a finaliser (a Dask future's), which swallows it, and the
+    run would go on. A second Ctrl-C raises at once. Off the main thread, or where SIGINT is
+    ignored, nothing changes."""
+
+    def __init__(self) -> None:
+        self._seen = False
+        self._old: Any = None
+
+    def __enter__(self) -> Callable[[], None]:
+        if threading.current_thread() is threading.main_thread():
+            old = signal.getsignal(signal.SIGINT)
+            if old is not signal.SIG_IGN:
+                self._old = signal.signal(signal.SIGINT, self._note)
+        return self._check
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+    def _note(self, signum: int, frame: object) -> None:
+        if self._seen:
+            raise KeyboardInterrupt
+        self._seen = True
+
+    def _check(self) -> None:
+        if self._seen:
+            raise KeyboardInterrupt
+
+
+def _run_frames(
+    source: FrameSource,
+    writer: FrameWriter,
+    runner: Runner,
+    image_size: tuple[int, int],
+    max_frames: int | None,
+    on_bad_frame: str,
+    progress: Callable[..., None] | None,
+    check: Callable[[], None],
+) -> StreamSummary:
+    """:func:`run_frames`, calling ``check`` between frames (it raises on Ctrl-C)."""
     w, h = image_size
     pending: deque[tuple[str, Any]] = deque()
     skipped = empty = with_points = 0
@@ -550,8 +599,10 @@ def run_frames(
             first_empty = first_empty or f"{name}: {result.message or 'no points'}"
         if progress:
             progress(summary())
+        check()
 
     while True:
+        check()
         while len(pending) >= runner.capacity:
             write_head()
         while pending and runner.done(pending[0][1]):
