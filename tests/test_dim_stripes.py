@@ -201,19 +201,11 @@ def _dense(seed, *, spacing=12.0, shape=(120, 240)):
     return np.clip(np.rint(img), 0, 255).astype(np.uint8), centre, amp
 
 
-#: Stripes 2.5 widths apart cover about half of each row, and the row median sits on their
-#: flanks (measured on seeds 0, 1, 2).
-DENSE_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="goal not met: over the row median the dim stripes between bright ones 2.5 widths "
-    "apart keep 12-20 % of their height; 81.7-84.0 % of the stripes' rows are found, 0.52-0.57 "
-    "px RMS, points up to 2.1 px off",
-)
-
-
-@DENSE_XFAIL
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dense_stripes_keep_their_height(seed):
+    # where stripes cover about half of each row, a row median sits on their flanks: measured
+    # on seeds 0, 1, 2, the dim stripes kept 12-20 % of their height over it; over the row's
+    # lifted grey opening (the default) every stripe keeps 85-99 %
     img, centre, amp = _dense(seed)
     rows = np.arange(10, img.shape[0] - 10)
     # a pixel's share of the peak at its centre
@@ -224,9 +216,10 @@ def test_dense_stripes_keep_their_height(seed):
         assert 0.8 <= kept <= 1.1, (k, kept)
 
 
-@DENSE_XFAIL
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dim_stripes_between_bright_ones_are_found(seed):
+    # measured on seeds 0, 1, 2: 97.9-99.6 % found, 0.069-0.073 px RMS, every point within
+    # 0.75 px (over the row median: 81.7-84.0 %, 0.52-0.57 px RMS, points up to 2.1 px off)
     img, centre, _ = _dense(seed)
     ex = extract_slits(img, stripe_width_px=DENSE_SIGMA * FWHM_PER_SIGMA, dot_size_px=1.5)
     found, dist = _found(ex, centre)

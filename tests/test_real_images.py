@@ -255,7 +255,7 @@ def test_photo_mode_keeps_the_line_where_the_median_loses_it(jpeg_photo):
     """Over black squares the row median (a window of ~8 line widths across the board's
     squares) lies above the dim line; the row opening follows the squares."""
     img, centre = jpeg_photo
-    _, found_median, _ = _score(*_linked(extract_slits(img)), centre)
+    _, found_median, _ = _score(*_linked(extract_slits(img, background="median")), centre)
     _, found_opening, _ = _score(*_linked(extract_slits(img, reject_texture=True)), centre)
     assert found_opening > found_median + 0.1, (found_median, found_opening)
 

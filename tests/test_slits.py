@@ -392,12 +392,14 @@ def test_refine_speckled_stripe_closer_to_truth():
 
 def test_refine_does_not_cross_segment_ends():
     # stripe 0 jumps by 4 px at the middle row: two segments; points next to the jump are
-    # fitted from their own segment only (or keep their centre), never pulled across it
+    # fitted from their own segment only (or keep their centre), never pulled across it. The
+    # rows within 25 of the jump: 20 refined (the last row before the jump, whose first centre
+    # the rows averaged for the fit pull 2 px across it, is in neither segment)
     img, truth = render(seed=5, jump=4.0, ambient=False, dots_per_stripe=0, read_noise=1.0)
     ex = extract_slits(img, stripe_width_px=3.06, dot_size_px=1.9)
     u, ok = refine_centres(img, ex.u, ex.v, ex.segment, ex.stripe_width_px)
     err, k, near = _errors(u, ex.v, truth)
-    sel = near & (k == 0) & (np.abs(ex.v - truth.jump_row) <= 20)
+    sel = near & (k == 0) & (np.abs(ex.v - truth.jump_row) <= 25)
     assert (sel & ok).sum() > 10
     assert np.abs(err[sel & ok]).max() < 0.1, np.abs(err[sel & ok]).max()
     # measured max 0.029 px (0.934 px for the extraction's own centres right at the jump,

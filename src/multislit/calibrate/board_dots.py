@@ -203,7 +203,11 @@ def board_view(image: NDArray, stripe_width_px: float, dot_size_px: float) -> Bo
     stripe_width_px, dot_size_px : px, the stripes' and the dots' FWHM in the references
     """
     ex = extract_slits(
-        image, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px, leaning=False
+        image,
+        stripe_width_px=stripe_width_px,
+        dot_size_px=dot_size_px,
+        leaning=False,
+        background="median",
     )
     h, w = ex.dots.shape
     clearance = STRIPE_CLEARANCE * ex.stripe_width_px

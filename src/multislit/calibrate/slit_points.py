@@ -45,7 +45,9 @@ from multislit.stripes import extract_slits, refine_centres
 #: robust plane fit). Steger's centres (zero of the derivative over the whole profile) are less
 #: shifted by laser speckle than the 3-point Gaussian fit at the peak. The target's stripes run
 #: near the vertical: the column pass (stripes leaning towards the horizontal) is left out.
-EXTRACT_OPTIONS = MappingProxyType({"dot_size_px": 0.5, "method": "steger", "leaning": False})
+EXTRACT_OPTIONS = MappingProxyType(
+    {"dot_size_px": 0.5, "method": "steger", "leaning": False, "background": "median"}
+)
 #: Keyword arguments of :func:`multislit.stripes.refine_centres` for the labelled centres. The
 #: fit along the stripe runs within one target face, and the dot refill uses the extraction's
 #: dot size.
@@ -221,7 +223,7 @@ def stripe_lines(capture: Capture, camera: PinholeCamera | MatrixCamera) -> list
         key = np.where(keep, ex.segment * (len(faces) + 1) + face, -1)
         lines += _straight_runs(ex.u, ex.v, key)
     for path in capture.references:
-        ex = extract_slits(capture.image(path), leaning=False)
+        ex = extract_slits(capture.image(path), leaning=False, background="median")
         lines += _straight_runs(ex.u, ex.v, ex.segment)
     return lines
 

@@ -34,6 +34,7 @@ from multislit.identify.patches import (
 )
 from multislit.identify.reference import (
     CURVE_DEGREE,
+    TEMPLATE_BACKGROUND,
     ReferenceSet,
     capture_reference,
     curve_du,
@@ -47,6 +48,7 @@ from multislit.identify.rig import RigGeometry, rig_geometry
 from multislit.identify.segments import split_at_brightness_steps
 
 __all__ = [
+    "TEMPLATE_BACKGROUND",
     "IdentifyOptions",
     "METHODS",
     "PieceLabels",

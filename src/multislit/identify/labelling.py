@@ -20,7 +20,7 @@ from multislit.errors import IdentificationError
 from multislit.identify.matching import score_candidates, template_geometry, template_size
 from multislit.identify.patches import compile_kernels as compile_patch_kernels
 from multislit.identify.prior import check_previous, scores_with_prior
-from multislit.identify.reference import ReferenceSet
+from multislit.identify.reference import TEMPLATE_BACKGROUND, ReferenceSet
 from multislit.identify.result import Identification
 from multislit.identify.segments import (
     band_samples,
@@ -110,7 +110,10 @@ def identify_template(
             f"image is {img.shape[1]}x{img.shape[0]} px but the reference was prepared for {w}x{h} px"
         )
     ex = extraction or extract_slits(
-        img, stripe_width_px=reference.stripe_width_px, dot_size_px=reference.dot_size_px
+        img,
+        stripe_width_px=reference.stripe_width_px,
+        dot_size_px=reference.dot_size_px,
+        background=TEMPLATE_BACKGROUND,
     )
     K = len(ex.u)
     slit = np.full(K, -1, np.int64)

@@ -37,6 +37,12 @@ from multislit.stripes.validation import SlitExtractionError, as_image
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
+#: The row background (``extract_slits(background=...)``) of the reference boards and of the
+#: frames the template method matches against them: the paper's row median. Over the scans'
+#: default, the row opening, the template matching's confident mistakes on the half-size
+#: spheres scene (``tests/test_identify.py``) rose from 0 to 0.46-0.51 %, the frames alone or
+#: the frames and the boards extracted over it.
+TEMPLATE_BACKGROUND = "median"
 #: Degree of the polynomial u = p(v) fitted per slit: a line plus the bend of a few px that
 #: lens distortion gives.
 CURVE_DEGREE = 3
@@ -670,7 +676,11 @@ def prepare_reference(
     curves, vranges, dots, widths, dsz, spacing = [], [], [], [], [], []
     for im, nm in zip(images, names, strict=True):
         ex = extract_slits(
-            im, stripe_width_px=stripe_width_px, dot_size_px=dot_size_px, leaning=False
+            im,
+            stripe_width_px=stripe_width_px,
+            dot_size_px=dot_size_px,
+            leaning=False,
+            background=TEMPLATE_BACKGROUND,
         )
         c, vr = _fit_curves(ex, num_slits, nm, h)
         curves.append(c)
@@ -742,7 +752,8 @@ def reference_curves(image: NDArray, num_slits: int, name: str = "ref") -> tuple
     except SlitExtractionError as exc:
         raise ReferenceImageError(str(exc)) from None
     h = np.shape(image)[0]
-    curves, vrange = _fit_curves(extract_slits(image, leaning=False), num_slits, name, h)
+    ex = extract_slits(image, leaning=False, background=TEMPLATE_BACKGROUND)
+    curves, vrange = _fit_curves(ex, num_slits, name, h)
     mid = curve_u(curves, np.full(num_slits, h / 2.0))
     spacing = float(np.median(np.diff(mid))) if num_slits > 1 else float(np.shape(image)[1]) / 4
     return curves, vrange, spacing

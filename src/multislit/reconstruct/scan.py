@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from multislit.calibrate import Calibration
 from multislit.errors import CalibrationError, MeasurementError
 from multislit.identify import (
+    TEMPLATE_BACKGROUND,
     Identification,
     ReferenceSet,
     RigGeometry,
@@ -496,8 +497,14 @@ def _scan(
     id_opts = opts.identification
     rig = rig_of(calibration) if id_opts.method == "geometry" else None
     t0 = time.perf_counter()
+    # the template method matches the frame's dots against the boards': extracted alike
+    background = TEMPLATE_BACKGROUND if id_opts.method == "template" else "opening"
     extraction = extract_slits(
-        image, reference.stripe_width_px, reference.dot_size_px, **ex_opts.kwargs()
+        image,
+        reference.stripe_width_px,
+        reference.dot_size_px,
+        **ex_opts.kwargs(),
+        background=background,
     )
     ident = identify(image, reference, rig, options=id_opts, extraction=extraction, previous=prior)
     m = ident.slit >= 0

@@ -3,7 +3,7 @@
 For one camera image with many roughly vertical laser stripes (slits) and the random dots
 scattered along them, by stage:
 
-1. :func:`separate` (:mod:`~multislit.stripes.separation`): a running median along each row,
+1. :func:`separate` (:mod:`~multislit.stripes.separation`): a grey opening along each row,
    wider than a stripe, estimates the background (ambient light, albedo, texture); subtracting
    it (clipped at 0) leaves the stripes and dots on a flat background (Fig. 11 c). A
    morphological opening with a vertical line longer than a dot finds the dots (a line along
@@ -34,9 +34,9 @@ avoided).
 
 Photos: the noise floor is one quantisation step of the data and the saturation level is
 read from the data's flat tops (:func:`~multislit.stripes.separation.clip_level`).
-``extract_slits(..., reject_texture=True)`` takes the row opening for the background and
-keeps only centres that look like a laser line (:func:`stripe_like`, :func:`texture_sigma`,
-:func:`along_slits`, linked over rows): edges, checker corners, texture and JPEG blocks go.
+``extract_slits(..., reject_texture=True)`` keeps only centres that look like a laser line
+(:func:`stripe_like`, :func:`texture_sigma`, :func:`along_slits`, linked over rows): edges,
+checker corners, texture and JPEG blocks go.
 
 Pixel convention: (u, v), u right (column), v down (row), (0, 0) the centre of the top-left
 pixel. Whole-image passes are OpenCV or NumPy; the loops NumPy cannot vectorise (the dots'
@@ -81,6 +81,7 @@ from multislit.stripes.separation import (
     BACKGROUNDS,
     Separation,
     fill_dots,
+    lifted_opening_background,
     row_median_background,
     row_opening_background,
     separate,
@@ -114,6 +115,7 @@ __all__ = [
     "resolve_channel",
     "BACKGROUNDS",
     "row_opening_background",
+    "lifted_opening_background",
     "ridge_contrast",
     "stripe_like",
     "texture_sigma",

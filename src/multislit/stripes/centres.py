@@ -630,7 +630,7 @@ def _centres(
 
 #: A weak centre is kept where :func:`edge_contrast` reaches this: a stripe stands out of both
 #: sides alike; the bright rim of a shadow's or an object's edge (a few grey levels above the
-#: lit side, which the row median takes away with the step) stands out of the dark side by the
+#: lit side, which the row background takes away with the step) stands out of the dark side by the
 #: step as well.
 EDGE_CONTRAST = 0.7
 
@@ -792,7 +792,7 @@ def stripe_like(
     :func:`~multislit.stripes.sizes.ridge_contrast` at least
     :data:`~multislit.stripes.sizes.MIN_RIDGE_CONTRAST`. An edge
     (checker, board or albedo step) and the inside of a plateau (a bright square narrower
-    than the row median) are as bright as the maximum on one or both sides, so their maxima
+    than the row background's window) are as bright as the maximum on one or both sides, so their maxima
     go; stripes, isolated or in a dense fan, keep ~1.
 
     Parameters

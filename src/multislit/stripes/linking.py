@@ -26,9 +26,14 @@ from multislit.stripes.channels import resolve_channel
 from multislit.stripes.openings import remove_streaks
 from multislit.stripes.response import ridge_threshold
 from multislit.stripes.ridges import column_pass, merge_dots, merge_passes
-from multislit.stripes.separation import background_validated, separate_validated
+from multislit.stripes.separation import (
+    BACKGROUNDS,
+    PHOTO_OPENING_WIDTHS,
+    background_validated,
+    dot_size_validated,
+    separate_validated,
+)
 from multislit.stripes.sizes import (
-    estimate_dot_size,
     estimate_stripe_width,
     opening_length,
 )
@@ -144,6 +149,7 @@ def extract_slits(
     channel: str | None = None,
     order: str = "rgb",
     leaning: bool = True,
+    background: str = "opening",
 ) -> SlitExtraction:
     """Stripe centre points, their segments and the dot image of one camera image.
 
@@ -170,15 +176,16 @@ def extract_slits(
     result (zero-length arrays), not an error.
 
     ``reject_texture`` is for photos (a board, a turntable, a textured object; JPEG): the
-    row background is the row opening (``background="opening"`` of :func:`separate`, which
-    follows checker squares and edges where the row median leaves ripples), and only centres
+    row opening has a shorter line
+    (:data:`~multislit.stripes.separation.PHOTO_OPENING_WIDTHS`, to follow checker squares)
+    and is not lifted, and only centres
     that look like a laser line are kept: darker on both sides in the slit image
     (:func:`~multislit.stripes.centres.stripe_like`: not an edge or a plateau), standing
     out of the texture beside it (``TEXTURE_FRACTION * k_sigma`` times
     :func:`~multislit.stripes.centres.texture_sigma`), on structure that runs along the
     slits (:func:`~multislit.stripes.centres.along_slits`: not a horizontal edge or a corner)
     and linked into a segment (continuing over rows). The simulator's images keep most of
-    their linked centres in this mode; the default keeps the paper's row median. The photo
+    their linked centres in this mode. The photo
     mode keeps the row pass only: along the columns, a checkerboard's horizontal edges and
     its squares' rows would pass for stripes; and it takes the slit image's row maxima above
     the threshold (:func:`~multislit.stripes.centres.find_stripe_centres`), not the ridge
@@ -212,6 +219,14 @@ def extract_slits(
         True; False: the row pass only (stripes up to about 56 degrees from the vertical), for
         images known to hold no others (the calibration's target and reference boards) or
         where time counts more.
+    background : {'opening', 'median'}
+        The row background (:data:`~multislit.stripes.separation.BACKGROUNDS` of
+        :func:`separate`): ``"opening"`` (default), the row's grey opening lifted to the
+        background's level (:func:`~multislit.stripes.separation.lifted_opening_background`),
+        which passes under the stripes however close they lie and follows every edge;
+        ``"median"``, the paper's running median (where stripes cover half the row it sits on
+        their flanks), which the calibration's boards and the template method's frames take
+        (:data:`~multislit.identify.reference.TEMPLATE_BACKGROUND`).
 
     Returns
     -------
@@ -226,7 +241,8 @@ def extract_slits(
     # is a strided view)
     plane = resolve_channel(image, channel, order=order)
     img = np.ascontiguousarray(as_image(image, channel=plane, order=order))
-    background = "opening" if reject_texture else "median"
+    if background not in BACKGROUNDS:
+        raise SlitExtractionError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     if not isinstance(leaning, bool | np.bool_):
         raise SlitExtractionError(f"leaning must be True or False, got {leaning!r}")
     if method not in CENTRE_METHODS:
@@ -245,11 +261,13 @@ def extract_slits(
                 img, estimate_noise(img), math.nan, ds if ds is not None else math.nan
             )
         sw = est
-    bg = None
-    if ds is None:
+    if reject_texture:
+        bg = background_validated(img, sw, background, PHOTO_OPENING_WIDTHS)
+    else:
         bg = background_validated(img, sw, background)
-        # dots from the same optics: fall back to the stripe
-        ds = estimate_dot_size(cv2.subtract(img, bg)) or sw
+    if ds is None:
+        # the dots' size on the image less its row median (the photo mode's: less its opening)
+        ds = dot_size_validated(img, sw, bg if reject_texture or background == "median" else None)
     hp, slits, sat, noise = separate_validated(
         img, sw, ds, saturation_level, background, bg, keep_ends=not reject_texture
     )

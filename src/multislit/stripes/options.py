@@ -50,9 +50,8 @@ class ExtractionOptions:
         stand out most above their background, clipped planes avoided. None (default): the
         capture's ``laser_channel`` (rig.json) where there is a capture, else ``"auto"``.
     reject_texture : bool
-        The photo mode: the row opening for the background and only centres that look like a
-        laser line (for photos of a line on a checkerboard, a turntable, a textured object).
-        Default False (the paper's row median).
+        The photo mode: only centres that look like a laser line (for photos of a line on a
+        checkerboard, a turntable, a textured object). Default False.
     method : {'gaussian', 'parabolic', 'centroid', 'steger'}
         The sub-pixel centre of each row's stripe. Default ``"gaussian"``.
     k_sigma : float, noise sigmas

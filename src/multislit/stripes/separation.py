@@ -31,14 +31,14 @@ class Separation(Summarised):
 
     Attributes
     ----------
-    highpass : image minus its row-wise running median, clipped at 0: stripes + dots (c)
+    highpass : image minus its row background, clipped at 0: stripes + dots (c)
     slits : ``highpass`` with the dots found by a vertical opening refilled along the stripe:
         the stripes only (d)
     dots : ``highpass - slits``: the dots only (e), >= 0
     saturated : (H, W) bool, pixels of saturated stripes (image >= saturation level, in vertical
         runs at least as long as the opening line); all False for float images that do not
         clip
-    stripe_width_px : stripe FWHM (px) used to size the median
+    stripe_width_px : stripe FWHM (px) used to size the row background
     dot_size_px : dot FWHM (px) used to size the opening
     """
 
@@ -538,30 +538,88 @@ def fill_dots(
 
 
 #: Background estimators of :func:`separate`; the first is the default.
-BACKGROUNDS = ("median", "opening")
-#: Length of the row opening (``background="opening"``), in stripe widths: a Gaussian stripe
-#: falls to 1.3 % of its peak 1.25 FWHM from its centre, so the opening passes under it.
-OPENING_WIDTHS = 2.5
+BACKGROUNDS = ("opening", "median")
+#: Length of the row opening (``background="opening"``), in stripe widths (FWHMs): it passes
+#: under a stripe up to 1.4 times as wide (a Gaussian falls to 1.3 % of its peak 1.25 of its
+#: FWHMs from its centre), and a stripe twice as wide (a surface the projector grazes) loses
+#: the lowest 12 % of its height; where stripes lie closer than the line, it rests in the
+#: troughs between them, as a median does not.
+OPENING_WIDTHS = 3.5
+#: The photo mode's row opening (``extract_slits(..., reject_texture=True)``), in stripe
+#: widths: shorter, to follow the squares of a checkerboard (measured on the photos of
+#: ``tests/test_real_images.py``: a line over the squares found in 88 and 98 % of its rows
+#: with 2.5 widths, 55 and 44 % with 3.5).
+PHOTO_OPENING_WIDTHS = 2.5
+#: The scans' row opening is lifted by the median of the image less it over the pixels within
+#: this many noise sigmas above it: the background's own level, where the opening follows the
+#: noise's minima.
+LIFT_SIGMAS = 3.0
+#: Every n-th row and column is read for that median.
+_LIFT_STRIDE = 4
 
 
-def row_opening_background(image: NDArray, stripe_width_px: float) -> NDArray:
-    """Row-wise grey opening with a horizontal line of ``OPENING_WIDTHS`` stripe widths (odd,
-    px), same dtype as ``image`` (H, W).
+def row_opening_background(
+    image: NDArray, stripe_width_px: float, widths: float = OPENING_WIDTHS
+) -> NDArray:
+    """Row-wise grey opening with a horizontal line of ``widths`` stripe widths (odd, px;
+    default :data:`OPENING_WIDTHS`), same dtype as ``image`` (H, W).
 
     The opening is the largest image below ``image`` that is made of flat pieces at least
     that long: it passes under every narrower bright feature (a stripe) and follows wider ones
     (checker squares, a board's margin) and every edge exactly, so ``image`` minus it (a white
     top-hat) keeps the stripes and leaves no step, plateau or ripple.
     """
-    length = 2 * math.ceil(OPENING_WIDTHS * stripe_width_px / 2.0) + 1
+    length = 2 * math.ceil(widths * stripe_width_px / 2.0) + 1
     return cv2.morphologyEx(image, cv2.MORPH_OPEN, np.ones((1, length), np.uint8))
 
 
-def background_validated(img: NDArray, stripe_width_px: float, background: str) -> NDArray:
-    """The row background of :func:`separate`'s ``background`` method (validated arguments)."""
+def lifted_opening_background(image: NDArray, stripe_width_px: float) -> NDArray:
+    """The row opening (:func:`row_opening_background`) raised to the background's level,
+    same dtype as ``image`` (H, W).
+
+    The opening's flat pieces rest on the lowest pixels of the noise, about a noise sigma
+    below its mean: ``image`` less it keeps that sigma everywhere, which single pixels then
+    exceed on noise and on the rounded top of an albedo step. It is raised by the median of
+    ``image`` less it over the pixels less than :data:`LIFT_SIGMAS` noise sigmas above it
+    (:func:`noise_from_difference`; every :data:`_LIFT_STRIDE`-th row and column), rounded to
+    the data's step for integer images.
+    """
+    bg = row_opening_background(image, stripe_width_px)
+    d = cv2.subtract(image[::_LIFT_STRIDE, ::_LIFT_STRIDE], bg[::_LIFT_STRIDE, ::_LIFT_STRIDE])
+    low = d[d < LIFT_SIGMAS * noise_from_difference(image)]
+    lift = float(np.median(low)) if low.size else 0.0
+    if np.issubdtype(bg.dtype, np.integer):
+        lift = round(lift)
+    return cv2.add(bg, np.full_like(bg, lift)) if lift > 0 else bg
+
+
+def background_validated(
+    img: NDArray, stripe_width_px: float, background: str, widths: float | None = None
+) -> NDArray:
+    """The row background of :func:`separate`'s ``background`` method (validated arguments):
+    for ``"opening"`` the lifted opening (:func:`lifted_opening_background`), or with
+    ``widths`` given the plain opening with a line of that many stripe widths (the photo
+    mode's)."""
     if background == "opening":
-        return row_opening_background(img, stripe_width_px)
+        if widths is not None:
+            return row_opening_background(img, stripe_width_px, widths)
+        return lifted_opening_background(img, stripe_width_px)
     return row_median_background(img, median_stride(stripe_width_px))
+
+
+def dot_size_validated(img: NDArray, stripe_width_px: float, bg: NDArray | None = None) -> float:
+    """The dots' FWHM (px) of :func:`~multislit.stripes.sizes.estimate_dot_size`, read on the
+    image less ``bg``; the stripe width (dots from the same optics) where no dot is found.
+
+    ``bg`` None (default): the row median. Clipped at 0, it leaves the troughs between the
+    stripes at 0 and the dots alone on them; less the row opening, the troughs keep their
+    noise, which the dots' scale selection along the columns takes for wider dots (measured on
+    the reference boards of tuning rigs 0, 1, 10, 11, 13, over the opening not lifted:
+    1.7-2.1 px read as 1.9-2.9 px).
+    """
+    if bg is None:
+        bg = background_validated(img, stripe_width_px, "median")
+    return estimate_dot_size(cv2.subtract(img, bg)) or stripe_width_px
 
 
 def _at_least(img: NDArray, level: float) -> NDArray[np.bool_]:
@@ -581,7 +639,7 @@ def separate_validated(
     stripe_width_px: float,
     dot_size_px: float,
     saturation_level: float | None,
-    background: str = "median",
+    background: str = "opening",
     bg: NDArray | None = None,
     lean_decimation: int = LEAN_DECIMATION,
     keep_ends: bool = False,
@@ -674,7 +732,7 @@ def separate(
     *,
     saturation_level: float | None = None,
     channel: str = "red",
-    background: str = "median",
+    background: str = "opening",
     order: str = "rgb",
 ) -> Separation:
     """Split an image into stripes (slits) and dots on a flat background (paper Fig. 11).
@@ -683,7 +741,7 @@ def separate(
     ----------
     image : (H, W) grayscale or (H, W, 3) RGB image, uint8, uint16 or float
     stripe_width_px : stripe FWHM along the row (px); estimated by
-        :func:`estimate_stripe_width` if None. Sizes the row median (:func:`median_stride`).
+        :func:`estimate_stripe_width` if None. Sizes the row background.
     dot_size_px : dot FWHM (px); estimated by :func:`estimate_dot_size` if None (falling back
         to the stripe width). Sizes the opening (:func:`opening_length`).
     saturation_level : pixel value at which the camera saturates; default read from the data
@@ -693,10 +751,12 @@ def separate(
     channel : the plane of a colour image (:data:`~multislit.stripes.validation.CHANNELS`);
         default ``"red"``
     background : how the row background is estimated, one of :data:`BACKGROUNDS`:
-        ``"median"`` (default), the sparse row median (:func:`row_median_background`), or
-        ``"opening"``, the row opening (:func:`row_opening_background`) for photos of
-        checkerboards and other scenes whose bright patches are narrower than the median's
-        window (~8 stripe widths)
+        ``"opening"`` (default), the row opening lifted to the background's level
+        (:func:`lifted_opening_background`), which passes under every stripe however close
+        its neighbours lie and follows every edge and wider patch; or ``"median"``, the
+        paper's sparse row median (:func:`row_median_background`), which sits on the
+        stripes' flanks where they cover half its window (~8 stripe widths: many slits, or a
+        face the slits cross at a slant)
     order : {'rgb', 'bgr'}
         The order of a colour image's planes (``"bgr"`` for ``cv2.imread``'s arrays); default
         ``"rgb"``
@@ -720,10 +780,9 @@ def separate(
     ds = positive_px(dot_size_px, "dot_size_px")
     if sw is None:
         sw = estimate_stripe_width(img)
-    bg = None
+    bg = background_validated(img, sw, background)
     if ds is None:
-        bg = background_validated(img, sw, background)
-        ds = estimate_dot_size(cv2.subtract(img, bg)) or sw
+        ds = dot_size_validated(img, sw, bg if background == "median" else None)
     hp, slits, sat, _ = separate_validated(img, sw, ds, saturation_level, background, bg)
     hpf = hp.astype(np.float32)
     sf = slits.astype(np.float32)
