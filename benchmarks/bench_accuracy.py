@@ -17,7 +17,9 @@ Ranges are given with all points and with the 0.3 % largest residuals left out (
 allows that). No MPE is specified for this rig, so no pass/fail.
 
 Run:  .venv/bin/python benchmarks/bench_accuracy.py [--scale S] [--seed N] [--no-write]
-(default full size, 1280x1024; writes the tables into benchmarks/RESULTS.md)
+(default full size, 1280x1024; writes the tables into benchmarks/RESULTS.md), or with
+``--seeds N N ...`` the run-to-run spread: the suite without the holes once per seed, each a
+repeat of the whole experiment (a section of its own in RESULTS.md)
 """
 
 from __future__ import annotations
@@ -214,19 +216,20 @@ def diameter_se(points: np.ndarray) -> float:
         return float("inf")
 
 
-def arc_coverage(res: ScanResult, pixels: dict, name: str) -> str:
-    """Per slit crossing primitive ``name``: its true stripe-centre pixels there with a point of
-    that slit, as "slit: found/true" (``pixels``: the image's truth npz arrays)."""
+def arc_coverage(res: ScanResult, pixels: dict, name: str) -> list[tuple[int, int, int]]:
+    """Per slit crossing primitive ``name``: (slit, its true stripe-centre pixels there with a
+    point of that slit, its true stripe-centre pixels there) (``pixels``: the image's truth npz
+    arrays)."""
     from multislit.sim.evaluate import object_metrics
 
     region = pixels["obj"] == list(pixels["names"]).index(name)
     tslit = pixels["slit"]
-    parts = []
+    out = []
     for k in np.unique(tslit[region & (tslit >= 0)]):
         m = object_metrics(res.identification, tslit, region & (tslit == k))["object"]
         if m["centres"]:
-            parts.append(f"{k}: {round(m['coverage'] * m['centres'])}/{m['centres']}")
-    return ", ".join(parts)
+            out.append((int(k), round(m["coverage"] * m["centres"]), int(m["centres"])))
+    return out
 
 
 def evaluate(res: ScanResult, truth: dict, pixels: dict | None = None) -> list[dict[str, Any]]:
@@ -277,9 +280,10 @@ def evaluate(res: ScanResult, truth: dict, pixels: dict | None = None) -> list[d
             arcs = len(
                 np.unique(res.slit[np.linalg.norm(pts - c, axis=1) < s["radius"] + SELECT_MM])
             )
-            cover = ""
+            cover, arc_rows = "", []
             if pixels is not None:
-                cover = f"; rows found/true {arc_coverage(res, pixels, 'sphere')}"
+                arc_rows = arc_coverage(res, pixels, "sphere")
+                cover = "; rows found/true " + ", ".join(f"{k}: {a}/{b}" for k, a, b in arc_rows)
             try:
                 off = float(np.linalg.norm(fit_sphere(p).centre - c))
                 note = (
@@ -296,6 +300,7 @@ def evaluate(res: ScanResult, truth: dict, pixels: dict | None = None) -> list[d
                     "value_excl": None,
                     "points": len(p),
                     "note": note,
+                    "arcs": arc_rows,
                 }
             )
             rows.append(
@@ -422,13 +427,98 @@ def to_markdown(r: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def spread(seeds: list[int], scale: float = 1.0) -> dict[str, Any]:
+    """The suite (without the holes) once per seed, each a repeat of the whole experiment
+    (the calibration's and the scans' images drawn anew, the hand readings too); per artefact
+    and quantity the median, least and largest absolute value over the seeds, and the small
+    spheres' slit arcs that get no point."""
+    runs = []
+    t0 = time.perf_counter()
+    for i, seed in enumerate(seeds):
+        runs.append(run_suite(scale, seed, full=True, holes=False))
+        print(f"seed {seed} done ({i + 1}/{len(seeds)}, {time.perf_counter() - t0:.0f} s)")
+    keys = [(x["artefact"], x["quantity"]) for x in runs[0]["rows"]]
+    table = []
+    for art, q in keys:
+        v = np.array(
+            [
+                abs(x["value"])
+                for r in runs
+                for x in r["rows"]
+                if (x["artefact"], x["quantity"]) == (art, q)
+            ]
+        )
+        ok = v[np.isfinite(v)]
+        over = f"{np.count_nonzero(ok > 0.2)}" if q in ("SD", "PS") else "-"
+        table.append(
+            [
+                art,
+                q,
+                float(np.median(ok)) if ok.size else float("nan"),
+                float(ok.min()) if ok.size else float("nan"),
+                float(ok.max()) if ok.size else float("nan"),
+                over,
+                int(np.count_nonzero(~np.isfinite(v))),
+            ]
+        )
+    lost, arcs, seeds_lost = 0, 0, set()
+    for seed, r in zip(seeds, runs, strict=True):
+        for x in r["rows"]:
+            if x["artefact"].startswith("sphere40") and x["quantity"] == "PS":
+                for _, found, _ in x.get("arcs", []):
+                    arcs += 1
+                    if found == 0:
+                        lost += 1
+                        seeds_lost.add(seed)
+    w, h = runs[0]["image_size"]
+    text = "\n".join(
+        [
+            f"The suite above (without the holes) on {len(seeds)} noise seeds "
+            f"({seeds[0]}-{seeds[-1]}): each seed repeats the whole experiment, the same artefacts "
+            "at the same places, every image (calibration, reference, scans) and the hand "
+            f"readings drawn anew; {w}x{h} px, {runs[0]['num_slits']} slits. Absolute values "
+            '(mm); "> 0.2": the seeds whose PS or SD is above 0.2 mm; "no fit": the seeds '
+            "whose points do not determine the value.\n",
+            markdown_table(
+                ["artefact", "quantity", "median", "least", "largest", "> 0.2", "no fit"],
+                table,
+            ),
+            f"The 40 mm spheres' slit arcs with no point of their slit: {lost} of {arcs}, on "
+            f"{len(seeds_lost)} of {len(seeds)} seeds"
+            + (f" ({', '.join(str(s) for s in sorted(seeds_lost))})" if seeds_lost else "")
+            + f". Whole run {time.perf_counter() - t0:.0f} s.\n",
+        ]
+    )
+    return {"runs": runs, "markdown": text}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", type=float, default=1.0, help="rig resolution factor (1: full)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="the spread over these noise seeds instead (the suite without the holes on each)",
+    )
     ap.add_argument("--no-holes", action="store_true", help="skip the demo's hole table")
     ap.add_argument("--no-write", action="store_true", help="do not update RESULTS.md")
     args = ap.parse_args(argv)
+    if args.seeds:
+        r = spread(args.seeds, args.scale)
+        print(r["markdown"])
+        if not args.no_write:
+            cmd = command_line("bench_accuracy.py", argv)
+            write_section(
+                "bench_accuracy_spread",
+                "Accuracy over noise seeds (run-to-run spread)",
+                r["markdown"],
+                cmd,
+            )
+            print(f"written to {RESULTS}")
+        return
     r = run_suite(args.scale, args.seed, full=True, holes=not args.no_holes)
     print(r["markdown"])
     if not args.no_write:
