@@ -541,18 +541,20 @@ class _BetweenFrames:
 
     def __init__(self) -> None:
         self._seen = False
+        self._installed = False
         self._old: Any = None
 
     def __enter__(self) -> Callable[[], None]:
         if threading.current_thread() is threading.main_thread():
-            old = signal.getsignal(signal.SIGINT)
-            if old is not signal.SIG_IGN:
+            if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
                 self._old = signal.signal(signal.SIGINT, self._note)
+                self._installed = True
         return self._check
 
     def __exit__(self, *exc: object) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+        if self._installed:
+            # None: a handler not set from Python; the default one stands in for it
+            signal.signal(signal.SIGINT, signal.SIG_DFL if self._old is None else self._old)
 
     def _note(self, signum: int, frame: object) -> None:
         if self._seen:
