@@ -276,3 +276,34 @@ def test_results_print_as_a_short_summary(cap_dir, scans):
         assert "\n" not in line and line.startswith(f"<{type(res).__name__} ")
     assert "measurable hole(s)" in str(holes) and "hole 1:" in str(holes)
     assert "slit planes" in str(results[2]) and "stripe centres" in str(results[3])
+
+
+def test_faded_piece_ends_are_left_out_and_nothing_else():
+    from multislit.identify import Identification
+    from multislit.reconstruct.scan import faded_ends
+
+    rng = np.random.default_rng(2)
+    # piece 0 (slit 3) fades in and out at its ends, as an arc towards a limb; piece 1 (slit 4)
+    # has a dim point in its middle (a dot's shadow, an albedo spot), which stays
+    p0 = np.r_[5.0, 10.0, 20.0, np.full(40, 60.0), 15.0, 8.0]
+    p1 = np.r_[np.full(20, 50.0), 5.0, np.full(20, 50.0)]
+    peak = np.r_[p0, p1, np.full(5, 1.0)]
+    v = np.r_[np.arange(p0.size), np.arange(p1.size), np.arange(5)].astype(float)
+    slit = np.r_[np.full(p0.size, 3), np.full(p1.size, 4), np.full(5, -1)]
+    segment = np.r_[np.zeros(p0.size), np.ones(p1.size), np.full(5, -1)].astype(np.int64)
+    want = np.zeros(peak.size, bool)
+    want[[0, 1, p0.size - 2, p0.size - 1]] = True  # 5, 10 and 15, 8 < 0.3 * 60; 20 is not
+    perm = rng.permutation(peak.size)
+    ident = Identification(
+        u=rng.uniform(0, 100, peak.size),
+        v=v[perm],
+        slit=slit[perm],
+        confidence=np.where(slit[perm] >= 0, 1.0, 0.0),
+        segment=segment[perm],
+        peak=peak[perm],
+        width=np.full(peak.size, 3.0),
+        num_segments=2,
+        num_identified=2,
+    )
+    assert np.array_equal(faded_ends(ident, 0.3), want[perm])
+    assert not faded_ends(ident, 0.0).any()
