@@ -69,7 +69,7 @@ from multislit.calibrate import calibrate_capture  # noqa: E402
 from multislit.identify import IdentifyOptions, identify, prepare_reference  # noqa: E402
 from multislit.identify.evidence import frame_dots  # noqa: E402
 from multislit.io import Capture  # noqa: E402
-from multislit.reconstruct import rig_of, scan_image, triangulate  # noqa: E402
+from multislit.reconstruct import faded_ends, rig_of, scan_image, triangulate  # noqa: E402
 from multislit.sim import RigSpec, simulate_capture  # noqa: E402
 from multislit.stripes import extract_slits, refine_centres  # noqa: E402
 
@@ -97,7 +97,7 @@ def frame(img, ref, cal, rig, template: bool = True) -> tuple[list[float], int]:
     t2 = time.perf_counter()
     u, _ = refine_centres(img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px)
     t3 = time.perf_counter()
-    ok = ident.identified
+    ok = ident.identified & ~faded_ends(ident)
     planes = cal.slit_planes.planes
     _, valid = triangulate(cal.camera, planes, np.c_[u[ok], ident.v[ok]], ident.slit[ok])
     t4 = time.perf_counter()

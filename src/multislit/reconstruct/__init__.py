@@ -4,6 +4,7 @@ from multislit.reconstruct.options import RefineOptions, ScanOptions
 from multislit.reconstruct.scan import (
     CALIBRATION_FILE,
     ScanResult,
+    faded_ends,
     load_capture_calibration,
     rig_of,
     scan_capture,
@@ -25,6 +26,7 @@ __all__ = [
     "ScanResult",
     "scan_image",
     "scan_image_for_holes",
+    "faded_ends",
     "load_capture_calibration",
     "scan_capture",
     "rig_of",

@@ -51,6 +51,7 @@ __all__ = [
     "rig_of",
     "scan_image",
     "scan_image_for_holes",
+    "faded_ends",
     "scan_capture",
     "load_capture_calibration",
     "capture_reference",
@@ -566,10 +567,11 @@ def _scan(
     )
 
 
-def faded_ends(ident: Identification, share: float) -> NDArray[np.bool_]:
+def faded_ends(ident: Identification, share: float = _FADED_SHARE) -> NDArray[np.bool_]:
     """(K,) bool: the identified points at either end of their piece (``ident.segment`` and
     slit; along the rows, or the columns for the points found along them) whose peak is below
-    ``share`` times the 90th percentile of the piece's peaks, up to the first that is not."""
+    ``share`` (default :data:`_FADED_SHARE`) times the 90th percentile of the piece's peaks, up
+    to the first that is not: what :func:`scan_image` leaves out."""
     k = len(ident.slit)
     out = np.zeros(k, bool)
     idx = np.flatnonzero((ident.slit >= 0) & (ident.segment >= 0))
