@@ -297,7 +297,10 @@ def batch(
                         threads_per_worker=1,
                         processes=processes,
                         dashboard_address=None,
-                        silence_logs=logging.ERROR,
+                        # the workers' own log stays quiet: a frame's error comes back through
+                        # its future, and at the end (Ctrl-C) a worker whose scheduler has just
+                        # closed logs its failed heartbeat with a traceback
+                        silence_logs=logging.CRITICAL,
                     )
                 client = distributed.Client(cluster)
                 if processes:
