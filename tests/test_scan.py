@@ -287,12 +287,20 @@ def test_faded_piece_ends_are_left_out_and_nothing_else():
     # has a dim point in its middle (a dot's shadow, an albedo spot), which stays
     p0 = np.r_[5.0, 10.0, 20.0, np.full(40, 60.0), 15.0, 8.0]
     p1 = np.r_[np.full(20, 50.0), 5.0, np.full(20, 50.0)]
-    peak = np.r_[p0, p1, np.full(5, 1.0)]
-    v = np.r_[np.arange(p0.size), np.arange(p1.size), np.arange(5)].astype(float)
-    slit = np.r_[np.full(p0.size, 3), np.full(p1.size, 4), np.full(5, -1)]
-    segment = np.r_[np.zeros(p0.size), np.ones(p1.size), np.full(5, -1)].astype(np.int64)
+    # segment 2 holds two pieces (slits 6 and 7, where two stripes meet), each faint where it
+    # meets the other: those ends go, each piece's level its own (40 and 100)
+    p2 = np.r_[np.full(10, 40.0), 10.0, 25.0, 20.0, np.full(10, 100.0)]
+    peak = np.r_[p0, p1, p2, np.full(5, 1.0)]
+    v = np.r_[np.arange(p0.size), np.arange(p1.size), np.arange(p2.size), np.arange(5)]
+    v = v.astype(float)
+    s2 = np.r_[np.full(11, 6), np.full(12, 7)]
+    slit = np.r_[np.full(p0.size, 3), np.full(p1.size, 4), s2, np.full(5, -1)]
+    segment = np.r_[np.zeros(p0.size), np.ones(p1.size), np.full(p2.size, 2), np.full(5, -1)]
+    segment = segment.astype(np.int64)
     want = np.zeros(peak.size, bool)
     want[[0, 1, p0.size - 2, p0.size - 1]] = True  # 5, 10 and 15, 8 < 0.3 * 60; 20 is not
+    o2 = p0.size + p1.size
+    want[[o2 + 10, o2 + 11, o2 + 12]] = True  # 10 < 0.3 * 40; 25, 20 < 0.3 * 100
     perm = rng.permutation(peak.size)
     ident = Identification(
         u=rng.uniform(0, 100, peak.size),

@@ -4,6 +4,7 @@ from multislit.reconstruct.options import RefineOptions, ScanOptions
 from multislit.reconstruct.scan import (
     CALIBRATION_FILE,
     ScanResult,
+    compile_kernels,
     faded_ends,
     load_capture_calibration,
     rig_of,
@@ -12,7 +13,6 @@ from multislit.reconstruct.scan import (
     scan_image_for_holes,
 )
 from multislit.reconstruct.triangulation import (
-    compile_kernels,
     triangulate,
     triangulate_matrix,
 )

@@ -12,6 +12,7 @@ Units: mm in the target frame, px in the image.
 from __future__ import annotations
 
 import json
+import math
 import time
 import weakref
 from collections.abc import Callable, Sequence
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.calibrate import Calibration
@@ -33,9 +35,11 @@ from multislit.identify import (
     identify,
     rig_geometry,
 )
+from multislit.identify.segments import group_order
 from multislit.io import Capture, write_ply
 from multislit.io.paths import as_path
 from multislit.reconstruct.options import ScanOptions, as_scan_options
+from multislit.reconstruct.triangulation import compile_kernels as compile_triangulation
 from multislit.reconstruct.triangulation import triangulate
 from multislit.stripes import as_image, extract_slits, refine_centres, resolve_channel
 from multislit.stripes.dots import centre_dots
@@ -52,6 +56,7 @@ __all__ = [
     "scan_image",
     "scan_image_for_holes",
     "faded_ends",
+    "compile_kernels",
     "scan_capture",
     "load_capture_calibration",
     "capture_reference",
@@ -574,31 +579,71 @@ def faded_ends(ident: Identification, share: float = _FADED_SHARE) -> NDArray[np
     to the first that is not: what :func:`scan_image` leaves out."""
     k = len(ident.slit)
     out = np.zeros(k, bool)
-    idx = np.flatnonzero((ident.slit >= 0) & (ident.segment >= 0))
-    if idx.size == 0 or share <= 0:
+    seg = np.where(ident.slit >= 0, ident.segment, -1).astype(np.int64)
+    if share <= 0 or not np.any(seg >= 0):
         return out
     ex = ident.extraction
     along = ident.v if ex is None else np.where(ex.by_column, ident.u, ident.v)
-    key = ident.segment[idx].astype(np.int64) * (int(ident.slit.max()) + 1) + ident.slit[idx]
-    peak = np.asarray(ident.peak, np.float64)[idx]
-    # the piece's bright level: its peaks' 90th percentile (by rank within the piece)
-    o = np.lexsort((peak, key))
-    ks = key[o]
-    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    n = np.diff(np.r_[start, ks.size])
-    level = peak[o][start + np.floor(0.9 * (n - 1)).astype(np.int64)]
-    group = np.searchsorted(ks[start], key)
-    dim = peak < share * level[group]
-    # the runs of dim points from each end of the piece, along it
-    o = np.lexsort((along[idx], key))
-    ks, d = key[o], dim[o]
-    start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-    g = np.repeat(np.arange(start.size), np.diff(np.r_[start, ks.size]))
-    pos = np.arange(ks.size)
-    first = np.minimum.reduceat(np.where(d, ks.size, pos), start)
-    last = np.maximum.reduceat(np.where(d, -1, pos), start)
-    out[idx[o]] = (pos < first[g]) | (pos > last[g])
+    order = group_order(seg)
+    start = np.flatnonzero(np.r_[True, seg[order][1:] != seg[order][:-1], True])
+    _faded_kernel(
+        order,
+        start,
+        np.asarray(ident.slit, np.int64),
+        np.asarray(along, np.float64),
+        np.asarray(ident.peak, np.float64),
+        float(share),
+        out,
+    )
     return out
+
+
+#: Along the stripe, px: a piece's points are ordered by slit times this plus their position.
+_SLIT_STRIDE = 1e6
+
+
+@njit(cache=True)
+def _faded_kernel(order, start, slit, along, peak, share, out):
+    """:func:`faded_ends` on the points ``order`` grouped by segment (group g holds
+    ``order[start[g]:start[g+1]]``): in each group the pieces of one slit, along the stripe."""
+    for g in range(len(start) - 1):
+        idx = order[start[g] : start[g + 1]]
+        key = np.empty(idx.size)
+        for i in range(idx.size):
+            key[i] = slit[idx[i]] * _SLIT_STRIDE + along[idx[i]]
+        a = idx[np.argsort(key, kind="mergesort")]
+        lo = 0
+        while lo < a.size:
+            hi = lo + 1
+            while hi < a.size and slit[a[hi]] == slit[a[lo]]:
+                hi += 1
+            n = hi - lo
+            level = np.sort(peak[a[lo:hi]])[int(math.floor(0.9 * (n - 1)))]
+            i = lo
+            while i < hi and peak[a[i]] < share * level:
+                out[a[i]] = True
+                i += 1
+            j = hi - 1
+            while j >= i and peak[a[j]] < share * level:
+                out[a[j]] = True
+                j -= 1
+            lo = hi
+
+
+def compile_kernels() -> None:
+    """Compile the stage's Numba kernels now (the triangulation's, :func:`faded_ends`'),
+    or load them from Numba's disk cache; :func:`multislit.compile_kernels` calls this with
+    the other stages' warm-ups."""
+    compile_triangulation()
+    _faded_kernel(
+        np.arange(4, dtype=np.intp),
+        np.array([0, 4], np.int64),
+        np.zeros(4, np.int64),
+        np.arange(4.0),
+        np.array([1.0, 9.0, 9.0, 1.0]),
+        0.3,
+        np.zeros(4, bool),
+    )
 
 
 def scan_image(
