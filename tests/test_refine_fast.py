@@ -456,13 +456,10 @@ def test_segment_rows_sort_matches_numpy_stable_argsort():
             np.testing.assert_array_equal(inner[on], want)
 
 
-@pytest.mark.parametrize(
-    ("deg", "bend_of"), [(-1, False), (0, False), (1, False), (2, False), (2, True)]
-)
-def test_fit_kernel_matches_pointwise_reference(deg, bend_of):
+@pytest.mark.parametrize("deg", [-1, 0, 1, 2])
+def test_fit_kernel_matches_pointwise_reference(deg):
     """The compiled along-stripe fits (one forward walk for the neighbours, moments in
-    registers) give the point-by-point reference's shifts (the parabola's curvature with
-    ``bend_of``), bit for bit."""
+    registers) give the point-by-point reference's shifts, bit for bit."""
     from multislit.stripes.refine import _fit_kernel, _segment_rows
 
     rng = np.random.default_rng(2)
@@ -472,11 +469,37 @@ def test_fit_kernel_matches_pointwise_reference(deg, bend_of):
     u = rng.uniform(10, 90, seg.size)
     m = u + rng.normal(0, 0.3, seg.size)
     row_ok = rng.random(seg.size) > 0.15
-    got = _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg, bend_of)
-    want = _fit_reference(seg, key, skey, order, inner, m, u, row_ok, R, deg, bend_of)
+    got = _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg)
+    want = _fit_reference(seg, key, skey, order, inner, m, u, row_ok, R, deg)
     assert got[1].sum() > 0.5 * seg.size
     for a, b in zip(got, want, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("W", [3, 12])
+def test_bend_kernel_matches_pointwise_parabola(W):
+    """The curvature from running sums equals that of the parabola fitted point by point
+    (neighbours by np.searchsorted, the normal equations solved by cofactors) within float
+    rounding, on segments with gaps and bad rows, far from the image's origin."""
+    from multislit.stripes.refine import _bend_kernel, _segment_rows
+
+    rng = np.random.default_rng(7)
+    seg, rows, span = _segment_points(rng, h=400, R=W)
+    rows = rows + 600  # rows far from 0: the sums' powers of the row must not lose the curve
+    span += 600
+    key, order, pos, skey, inner = _segment_rows(seg, rows, span, 2)
+    # stripes across a 1500 px wide image, leaning, bent by -2e-3 .. 2e-3 px/row^2
+    curve = 2e-3 * (rows - 800.0) ** 2 * (seg % 3 - 1)
+    m = 100.0 + 100.0 * seg + 0.3 * (rows - 800.0) + curve + rng.normal(0, 0.3, seg.size)
+    u = m + rng.normal(0, 0.3, seg.size)
+    row_ok = rng.random(seg.size) > 0.15
+    got, ok = _bend_kernel(seg, key, order, skey, inner, m, row_ok, W)
+    want, ok_want, *_ = _fit_reference(seg, key, skey, order, inner, m, u, row_ok, W, 2, True)
+    np.testing.assert_array_equal(ok, ok_want)
+    assert ok.sum() > 0.5 * seg.size
+    # the curvatures' noise is 0.003 (W = 12) to 0.05 px/row^2 (W = 3); measured rounding
+    # 5e-10 and 5e-8
+    np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=1e-6)
 
 
 def test_pick_curved_matches_numpy_reference():

@@ -223,9 +223,7 @@ def refine_centres(
     if deg < 0:
         # the line less its bias on a curved stripe: the curvature from a parabola over
         # _BEND_WINDOWS times the rows, whose noise the wide window keeps far below the line's
-        curv, has, *_ = _fit_kernel(
-            seg, key, order, pos, skey, inner, m, uu, row_ok, _BEND_WINDOWS * R, 2, True
-        )
+        curv, has = _bend_kernel(seg, key, order, skey, inner, m, row_ok, _BEND_WINDOWS * R)
         take = has & np.isfinite(bend)
         base = np.where(take, delta - np.where(take, curv * bend, 0.0), delta)
         delta = _pick_curved(delta, delta2, gain, key, order, R, base)
@@ -813,15 +811,14 @@ def _segment_rows(seg, r, span, end):
 
 
 @njit(cache=True)
-def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg, bend_of=False):
+def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
     """Least-squares polynomial of degree ``deg`` in dv through the Steger centres ``m`` of the
     same segment's rows v - R .. v + R (symmetric window shrunk at the segment's ends, rows
     with ``inner`` < 0 left out), relative to each point's ``u``: shift and ok (K,). ``deg``
     -1: both degree 1 (the shift) and 2; then also the degree-2 shift and var(shift2 - shift)
     per unit iid noise (K,), NaN where there is no degree-2 fit (else 0 and NaN), and the
     line's shift per unit of curvature (the line's intercept weights applied to dv^2; a
-    stripe u = c dv^2 moves the line's shift by c times it), NaN where there is no line.
-    ``bend_of`` with ``deg`` 2: the parabola's coefficient of dv^2 instead of its shift."""
+    stripe u = c dv^2 moves the line's shift by c times it), NaN where there is no line."""
     K = seg.size
     auto = deg < 0
     n = 3 if auto else deg + 1
@@ -898,13 +895,82 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg, bend_of
             delta2[i] = d2
             # var(shift2) - var(shift1) for unit noise: (A3^-1)_00 - (A2^-1)_00
             gain[i] = c0 / det3 - m2 / det
-        elif bend_of:  # the third row of cofactors
-            delta[i] = (c2 * r0 + (m1 * m2 - m0 * m3) * r1 + det * r2) / det3
-            ok[i] = True
         else:
             delta[i] = d2
             ok[i] = True
     return delta, ok, delta2, gain, bend
+
+
+@njit(cache=True)
+def _bend_kernel(seg, key, order, skey, inner, m, row_ok, W):
+    """The dv^2 coefficient of the least-squares parabola through the Steger centres ``m`` of
+    the same segment's rows v - W .. v + W (as :func:`_fit_kernel` with degree 2 and
+    ``bend_of``: symmetric, shrunk at the segment's ends, rows with ``inner`` < 0 or not
+    ``row_ok`` left out; none where the window reaches fewer than W // 2 rows or holds fewer
+    than 4), and ok (K,): from running sums of each segment's rows, so that a wide window
+    costs what a narrow one does. Rows are counted from the segment's first, centres from
+    its first centre (the sums stay small)."""
+    K = seg.size
+    # running sums, restarted at each segment, over the sorted points that take part:
+    # 1, x, x^2, x^3, x^4, y, y x, y x^2 (x the row, y the centre, both from the segment's first)
+    acc = np.zeros((K, 8))
+    start = np.zeros(K, np.intp)
+    x0 = 0
+    y0 = 0.0
+    for q in range(K):
+        i = order[q]
+        first = q == 0 or seg[order[q - 1]] != seg[i]
+        if first:
+            x0 = skey[q]
+            y0 = m[i]
+        start[q] = q if first else start[q - 1]
+        if not first:
+            acc[q] = acc[q - 1]
+        if seg[i] >= 0 and row_ok[i] and inner[i] >= 0:
+            x = float(skey[q] - x0)
+            y = m[i] - y0
+            x2 = x * x
+            acc[q, 0] += 1.0
+            acc[q, 1] += x
+            acc[q, 2] += x2
+            acc[q, 3] += x2 * x
+            acc[q, 4] += x2 * x2
+            acc[q, 5] += y
+            acc[q, 6] += y * x
+            acc[q, 7] += y * x2
+    curv = np.zeros(K)
+    ok = np.zeros(K, np.bool_)
+    S = np.empty(8)
+    for q in range(K):
+        i = order[q]
+        reach = min(inner[i], W)
+        if seg[i] < 0 or inner[i] < 0 or reach < W // 2:
+            continue
+        lo = np.searchsorted(skey, skey[q] - reach)
+        hi = np.searchsorted(skey, skey[q] + reach, side="right") - 1
+        for c in range(8):
+            S[c] = acc[hi, c] - (acc[lo - 1, c] if lo > start[q] else 0.0)
+        if S[0] < 4:
+            continue
+        xi = float(skey[q] - skey[start[q]])
+        # the moments about the point's row: sum(dv^k), sum(y dv^k)
+        m0 = S[0]
+        m1 = S[1] - xi * m0
+        m2 = S[2] - 2.0 * xi * S[1] + xi * xi * m0
+        m3 = S[3] - 3.0 * xi * S[2] + 3.0 * xi * xi * S[1] - xi**3 * m0
+        m4 = S[4] - 4.0 * xi * S[3] + 6.0 * xi * xi * S[2] - 4.0 * xi**3 * S[1] + xi**4 * m0
+        r0 = S[5]
+        r1 = S[6] - xi * S[5]
+        r2 = S[7] - 2.0 * xi * S[6] + xi * xi * S[5]
+        c0 = m2 * m4 - m3 * m3
+        c1 = m2 * m3 - m1 * m4
+        c2 = m1 * m3 - m2 * m2
+        det3 = m0 * c0 + m1 * c1 + m2 * c2
+        if abs(det3) <= 1e-9 * max(m0, 1.0) ** 3:
+            continue
+        curv[i] = (c2 * r0 + (m1 * m2 - m0 * m3) * r1 + (m0 * m2 - m1 * m1) * r2) / det3
+        ok[i] = True
+    return curv, ok
 
 
 @njit(cache=True)
