@@ -904,71 +904,93 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
 @njit(cache=True)
 def _bend_kernel(seg, key, order, skey, inner, m, row_ok, W):
     """The dv^2 coefficient of the least-squares parabola through the Steger centres ``m`` of
-    the same segment's rows v - W .. v + W (as :func:`_fit_kernel` with degree 2 and
-    ``bend_of``: symmetric, shrunk at the segment's ends, rows with ``inner`` < 0 or not
-    ``row_ok`` left out; none where the window reaches fewer than W // 2 rows or holds fewer
-    than 4), and ok (K,): from running sums of each segment's rows, so that a wide window
-    costs what a narrow one does. Rows are counted from the segment's first, centres from
-    its first centre (the sums stay small)."""
+    the same segment's rows v - W .. v + W (as :func:`_fit_kernel` with degree 2: symmetric,
+    shrunk at the segment's ends, rows with ``inner`` < 0 or not ``row_ok`` left out; none
+    where the window reaches fewer than W // 2 rows or holds fewer than 4), and ok (K,): from
+    running sums over each segment's rows, so that a wide window costs what a narrow one does.
+    Rows are counted from the segment's first, centres from its first centre (the sums stay
+    small). The windows' ends only move forward along the sorted keys ``skey`` (``key`` -
+    reach and ``key`` + reach never decrease along a segment), so two pointers find them."""
     K = seg.size
     # running sums, restarted at each segment, over the sorted points that take part:
     # 1, x, x^2, x^3, x^4, y, y x, y x^2 (x the row, y the centre, both from the segment's first)
-    acc = np.zeros((K, 8))
+    a0 = np.zeros(K)
+    a1 = np.zeros(K)
+    a2 = np.zeros(K)
+    a3 = np.zeros(K)
+    a4 = np.zeros(K)
+    b0 = np.zeros(K)
+    b1 = np.zeros(K)
+    b2 = np.zeros(K)
     start = np.zeros(K, np.intp)
-    x0 = 0
+    k0 = 0
     y0 = 0.0
     for q in range(K):
         i = order[q]
-        first = q == 0 or seg[order[q - 1]] != seg[i]
-        if first:
-            x0 = skey[q]
+        if q == 0 or seg[order[q - 1]] != seg[i]:
+            k0 = skey[q]
             y0 = m[i]
-        start[q] = q if first else start[q - 1]
-        if not first:
-            acc[q] = acc[q - 1]
+            start[q] = q
+            s0 = s1 = s2 = s3 = s4 = t0 = t1 = t2 = 0.0
+        else:
+            start[q] = start[q - 1]
+            s0, s1, s2, s3, s4 = a0[q - 1], a1[q - 1], a2[q - 1], a3[q - 1], a4[q - 1]
+            t0, t1, t2 = b0[q - 1], b1[q - 1], b2[q - 1]
         if seg[i] >= 0 and row_ok[i] and inner[i] >= 0:
-            x = float(skey[q] - x0)
+            x = float(skey[q] - k0)
             y = m[i] - y0
             x2 = x * x
-            acc[q, 0] += 1.0
-            acc[q, 1] += x
-            acc[q, 2] += x2
-            acc[q, 3] += x2 * x
-            acc[q, 4] += x2 * x2
-            acc[q, 5] += y
-            acc[q, 6] += y * x
-            acc[q, 7] += y * x2
+            s0 += 1.0
+            s1 += x
+            s2 += x2
+            s3 += x2 * x
+            s4 += x2 * x2
+            t0 += y
+            t1 += y * x
+            t2 += y * x2
+        a0[q], a1[q], a2[q], a3[q], a4[q] = s0, s1, s2, s3, s4
+        b0[q], b1[q], b2[q] = t0, t1, t2
     curv = np.zeros(K)
     ok = np.zeros(K, np.bool_)
-    S = np.empty(8)
+    lo = 0
+    hi = 0
     for q in range(K):
         i = order[q]
         reach = min(inner[i], W)
         if seg[i] < 0 or inner[i] < 0 or reach < W // 2:
             continue
-        lo = np.searchsorted(skey, skey[q] - reach)
-        hi = np.searchsorted(skey, skey[q] + reach, side="right") - 1
-        for c in range(8):
-            S[c] = acc[hi, c] - (acc[lo - 1, c] if lo > start[q] else 0.0)
-        if S[0] < 4:
+        while skey[lo] < skey[q] - reach:
+            lo += 1
+        hi = max(hi, q)
+        while hi + 1 < K and skey[hi + 1] <= skey[q] + reach:
+            hi += 1
+        p = lo - 1
+        inside = lo > start[q]  # else the window starts at the segment's first point
+        m0 = a0[hi] - (a0[p] if inside else 0.0)
+        if m0 < 4:
             continue
+        S1 = a1[hi] - (a1[p] if inside else 0.0)
+        S2 = a2[hi] - (a2[p] if inside else 0.0)
+        S3 = a3[hi] - (a3[p] if inside else 0.0)
+        S4 = a4[hi] - (a4[p] if inside else 0.0)
+        T0 = b0[hi] - (b0[p] if inside else 0.0)
+        T1 = b1[hi] - (b1[p] if inside else 0.0)
+        T2 = b2[hi] - (b2[p] if inside else 0.0)
         xi = float(skey[q] - skey[start[q]])
         # the moments about the point's row: sum(dv^k), sum(y dv^k)
-        m0 = S[0]
-        m1 = S[1] - xi * m0
-        m2 = S[2] - 2.0 * xi * S[1] + xi * xi * m0
-        m3 = S[3] - 3.0 * xi * S[2] + 3.0 * xi * xi * S[1] - xi**3 * m0
-        m4 = S[4] - 4.0 * xi * S[3] + 6.0 * xi * xi * S[2] - 4.0 * xi**3 * S[1] + xi**4 * m0
-        r0 = S[5]
-        r1 = S[6] - xi * S[5]
-        r2 = S[7] - 2.0 * xi * S[6] + xi * xi * S[5]
+        m1 = S1 - xi * m0
+        m2 = S2 - 2.0 * xi * S1 + xi * xi * m0
+        m3 = S3 - 3.0 * xi * S2 + 3.0 * xi * xi * S1 - xi**3 * m0
+        m4 = S4 - 4.0 * xi * S3 + 6.0 * xi * xi * S2 - 4.0 * xi**3 * S1 + xi**4 * m0
+        r1 = T1 - xi * T0
+        r2 = T2 - 2.0 * xi * T1 + xi * xi * T0
         c0 = m2 * m4 - m3 * m3
         c1 = m2 * m3 - m1 * m4
         c2 = m1 * m3 - m2 * m2
         det3 = m0 * c0 + m1 * c1 + m2 * c2
         if abs(det3) <= 1e-9 * max(m0, 1.0) ** 3:
             continue
-        curv[i] = (c2 * r0 + (m1 * m2 - m0 * m3) * r1 + (m0 * m2 - m1 * m1) * r2) / det3
+        curv[i] = (c2 * T0 + (m1 * m2 - m0 * m3) * r1 + (m0 * m2 - m1 * m1) * r2) / det3
         ok[i] = True
     return curv, ok
 
