@@ -493,7 +493,7 @@ def test_bend_kernel_matches_pointwise_parabola(W):
     m = 100.0 + 100.0 * seg + 0.3 * (rows - 800.0) + curve + rng.normal(0, 0.3, seg.size)
     u = m + rng.normal(0, 0.3, seg.size)
     row_ok = rng.random(seg.size) > 0.15
-    got, ok = _bend_kernel(seg, key, order, skey, inner, m, row_ok, W)
+    got, ok = _bend_kernel(seg, order, skey, inner, m, row_ok, W)
     want, ok_want, *_ = _fit_reference(seg, key, skey, order, inner, m, u, row_ok, W, 2, True)
     np.testing.assert_array_equal(ok, ok_want)
     assert ok.sum() > 0.5 * seg.size

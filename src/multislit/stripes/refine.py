@@ -137,11 +137,11 @@ def refine_centres(
        while one bad row centre changes the sign of d from one window to the other.
        Where the line is kept, its bias is taken off: c is read from a parabola over the
        rows v - W .. v + W (W = 3 R, :data:`_BEND_WINDOWS`; shrunk at the segment's ends,
-       none where fewer than R rows lie on either side), and the line's value on c dv^2
-       subtracted. Below the test's level the curvature still biases the line (on the arcs
-       of a 120 mm sphere at 0.8-1 m, ~0.05 px, all towards the arc's inside: the sphere
-       reads ~0.07 mm small), while over the wide window its noise adds little to the
-       line's (a few per cent on straight speckled stripes).
+       none where it would reach fewer than W // 2 rows on either side), and the line's
+       value on c dv^2 subtracted. Below the test's level the curvature still biases the line
+       (on the arcs of a 120 mm sphere at 0.8-1 m by ~0.05 px, all towards the arc's inside:
+       its points lay ~0.07-0.1 mm inside it), while over the wide window its noise adds
+       little to the line's (a few per cent on straight speckled stripes).
 
     A point keeps its given centre (``ok`` False) where the refinement is not trustworthy: no
     segment (< 0; give the points the extraction found along their columns,
@@ -223,9 +223,9 @@ def refine_centres(
     if deg < 0:
         # the line less its bias on a curved stripe: the curvature from a parabola over
         # _BEND_WINDOWS times the rows, whose noise the wide window keeps far below the line's
-        curv, has = _bend_kernel(seg, key, order, skey, inner, m, row_ok, _BEND_WINDOWS * R)
+        curv, has = _bend_kernel(seg, order, skey, inner, m, row_ok, _BEND_WINDOWS * R)
         take = has & np.isfinite(bend)
-        base = np.where(take, delta - np.where(take, curv * bend, 0.0), delta)
+        base = delta - np.where(take, curv * bend, 0.0)
         delta = _pick_curved(delta, delta2, gain, key, order, R, base)
     # another stripe within the kernel's reach in the same row: its flank biases the centre
     ok &= _row_gaps_kernel(uu, r, h) >= 3.0 * ss + 2.5 * sigma
@@ -902,15 +902,15 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
 
 
 @njit(cache=True)
-def _bend_kernel(seg, key, order, skey, inner, m, row_ok, W):
+def _bend_kernel(seg, order, skey, inner, m, row_ok, W):
     """The dv^2 coefficient of the least-squares parabola through the Steger centres ``m`` of
     the same segment's rows v - W .. v + W (as :func:`_fit_kernel` with degree 2: symmetric,
     shrunk at the segment's ends, rows with ``inner`` < 0 or not ``row_ok`` left out; none
     where the window reaches fewer than W // 2 rows or holds fewer than 4), and ok (K,): from
     running sums over each segment's rows, so that a wide window costs what a narrow one does.
     Rows are counted from the segment's first, centres from its first centre (the sums stay
-    small). The windows' ends only move forward along the sorted keys ``skey`` (``key`` -
-    reach and ``key`` + reach never decrease along a segment), so two pointers find them."""
+    small). The windows' ends only move forward along the sorted keys ``skey`` (a point's key
+    less its reach and plus it never decrease along a segment), so two pointers find them."""
     K = seg.size
     # running sums, restarted at each segment, over the sorted points that take part:
     # 1, x, x^2, x^3, x^4, y, y x, y x^2 (x the row, y the centre, both from the segment's first)
