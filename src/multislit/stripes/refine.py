@@ -140,7 +140,7 @@ def refine_centres(
        none where it would reach fewer than W // 2 rows on either side), and the line's
        value on c dv^2 subtracted. Below the test's level the curvature still biases the line
        (on the arcs of a 120 mm sphere at 0.8-1 m by ~0.05 px, all towards the arc's inside:
-       its points lay ~0.07-0.1 mm inside it), while over the wide window its noise adds
+       its points would lie ~0.07-0.1 mm inside it), while over the wide window its noise adds
        little to the line's (a few per cent on straight speckled stripes).
 
     A point keeps its given centre (``ok`` False) where the refinement is not trustworthy: no
