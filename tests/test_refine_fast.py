@@ -519,7 +519,7 @@ def test_pick_curved_matches_numpy_reference():
     delta2 = delta1 + rng.normal(0, 0.05, K) + bend
     gain = np.where(seg >= 0, rng.uniform(0.01, 0.05, K), np.nan)
     gain[rng.random(K) < 0.05] = np.nan  # points without a degree-2 fit
-    got = _pick_curved(delta1, delta2, gain, key, order, R)
+    got = _pick_curved(delta1, delta2, gain, key, order, R, delta1)
     want = _pick_curved_reference(delta1, delta2, gain, key, R)
     np.testing.assert_array_equal(got, want)
     assert 0 < np.mean(got != delta1) < 1

@@ -241,16 +241,15 @@ def _pick_curved(
     key: NDArray[np.int64],
     by_key: NDArray[np.intp],
     R: int,
-    base: F64 | None = None,
+    base: F64,
 ) -> F64:
     """The shifts of ``degree="auto"``: ``delta2`` (degree 2) where the difference from
     ``delta1`` (degree 1) is significant against the noise and so is that of a window R rows
-    before or after on the segment, with the same sign; else ``base`` (default ``delta1``;
-    the line less its curvature's bias). ``gain`` (K,) is
+    before or after on the segment, with the same sign; else ``base`` (the line less its
+    curvature's bias). ``gain`` (K,) is
     var(delta2 - delta1) per unit iid noise (NaN where there is no degree-2 fit); ``key``
     (K,) the points' segment * span + row of :func:`_segment_rows` and ``by_key`` (K,) the
     stable order that sorts it; ``R`` the half window."""
-    base = delta1 if base is None else base
     valid = np.isfinite(gain) & (gain > 0)
     d = delta2 - delta1
     order = by_key[valid[by_key]]  # the points with a gain, sorted by key (stable)
