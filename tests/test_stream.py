@@ -331,6 +331,17 @@ class _SwallowingRunner:
         pass
 
 
+@pytest.fixture
+def ctrl_c_reaches_python():
+    """Ctrl-C (SIGINT) handled by Python's default handler during the test, whatever the test
+    process inherited: a process started in the background by a shell without job control
+    ignores SIGINT, and a run then leaves it ignored (as it should)."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+@pytest.mark.usefixtures("ctrl_c_reaches_python")
 def test_ctrl_c_swallowed_where_it_lands_still_stops_the_run(tmp_path: Path):
     _numbered_folder(tmp_path / "in", 6)
     runner = _SwallowingRunner()
