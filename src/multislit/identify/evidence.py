@@ -54,7 +54,7 @@ from multislit.stripes.dots import (
     dots_off_stripes,
     find_dots,
     near_stripes,
-    z_at,
+    z_many,
 )
 from multislit.stripes.separation import saturation_level_of
 
@@ -254,7 +254,7 @@ class FrameDots:
     beta: float
 
     def kernel_args(self) -> tuple[tuple, tuple]:
-        """What the kernels read (:func:`_soft`): the response (its
+        """What the kernels read (:func:`_llr_at`): the response (its
         :meth:`~multislit.stripes.dots.DotResponse.kernel_args`) and the chance of a dot by
         chance with the table of :func:`dot_llr`: (near zone (H, W) uint8, the chance's level
         per zone and block (2, Hb, Wb) uint8, logit of each level (Q,), the table (Q, T), its
@@ -590,50 +590,96 @@ def _range(rc, cpc, spc, cpj, spj, g):
     return rc * (cpc + g * spc) / (cpj + g * spj)
 
 
-@njit(cache=True, inline="always")
-def _soft(u0, v0, su, sv, amp, resp, chance):
-    """(usable, log-likelihood ratio) of a dot predicted at (u0, v0) px beside a stripe of
-    direction (``su``, ``sv``) on which a dot's response is ``amp`` (intensity units): the
-    frame's dots' response there in noise sigmas of its zone and level
-    (:func:`~multislit.stripes.dots.z_at`), read through the frame's table of
-    :func:`dot_llr` (``chance``, :meth:`FrameDots.kernel_args`). Not usable outside the image
-    or on saturated places."""
-    sm, reach, lut_lo, lut_scale, lut_off, lut_inv = resp
-    zone_m, pcl, logit_q, tab, tab_lo, tab_scale = chance
-    h, w = chance[0].shape
-    if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
-        return False, 0.0
-    iv = int(v0 + 0.5)
-    iu = int(u0 + 0.5)
-    zn = zone_m[iv, iu]
-    z, inv = z_at(sm, u0, v0, su, sv, zn, reach, lut_lo, lut_scale, lut_off, lut_inv)
-    if not np.isfinite(z):
-        return False, 0.0
-    q = pcl[zn, iv >> _SHIFT, iu >> _SHIFT]
-    a = ALPHA_SHARE * amp * inv
-    y = a * z - 0.5 * a * a + logit_q[q]
-    i = int((y - tab_lo) * tab_scale + 0.5)
-    i = min(max(i, 0), tab.shape[1] - 1)
-    return True, tab[q, i]
+@njit(cache=True)
+def _scratch(m):
+    """Scratch for reading ``m`` places (:func:`_llr_at`): (su, sv, zone, z, inv, llr)."""
+    return (
+        np.empty(m),
+        np.empty(m),
+        np.empty(m, np.intp),
+        np.empty(m),
+        np.empty(m),
+        np.empty(m),
+    )
 
 
 @njit(cache=True)
-def _dot_path(u0, v0, um, vm, up, vp, G, su, sv, amp, resp, chance, gvals, score, count):  # fmt: skip
-    """Add one predicted dot to the slope grid ``gvals`` (S,): at each slope its place on the
-    path ``p(g)`` (the parabola through (um, vm), (u0, v0), (up, vp) at g = -G, 0, G) is read
-    by :func:`_soft`; ``score`` (S,) gains its log-likelihood ratio, ``count`` (S,) counts the
-    places that favour a dot. Places outside the image count neither way."""
+def _grown(a, n):
+    """A 1-D array of twice the length of ``a`` with ``a[:n]`` at its start."""
+    out = np.empty(2 * a.shape[0], a.dtype)
+    out[:n] = a[:n]
+    return out
+
+
+@njit(cache=True)
+def _llr_at(u, v, amp, n, su, sv, resp, chance, work):
+    """The log-likelihood ratios of dots predicted at the places (``u[i]``, ``v[i]``) px,
+    i < ``n``, beside a stripe of direction (``su``, ``sv``) on which each dot's response is
+    ``amp[i]`` (intensity units), into ``work[5]`` (``work``: :func:`_scratch` of at least
+    ``n``): the frame's dots' response there in noise sigmas of its zone and level
+    (:func:`~multislit.stripes.dots.z_many`), read through the frame's table of
+    :func:`dot_llr` (``chance``, :meth:`FrameDots.kernel_args`); NaN where a dot cannot be
+    read (outside the image, on saturated places). Loops without branches on the data, which
+    the compiler vectorises."""
+    sm, reach, lut_lo, lut_scale, lut_off, lut_inv = resp
+    zone_m, pcl, logit_q, tab, tab_lo, tab_scale = chance
+    psu, psv, zone, z, inv, out = work
+    h, w = zone_m.shape
+    for i in range(n):
+        inside = (u[i] >= 1.0) & (u[i] <= w - 2.0) & (v[i] >= 1.0) & (v[i] <= h - 2.0)
+        uu = u[i] if inside else 1.0
+        vv = v[i] if inside else 1.0
+        psu[i] = su
+        psv[i] = sv
+        zone[i] = zone_m[int(vv + 0.5), int(uu + 0.5)]
+    z_many(sm, u, v, psu, psv, zone, n, reach, lut_lo, lut_scale, lut_off, lut_inv, z, inv)
+    top = tab.shape[1] - 1.0
+    for i in range(n):
+        inside = (u[i] >= 1.0) & (u[i] <= w - 2.0) & (v[i] >= 1.0) & (v[i] <= h - 2.0)
+        good = inside & np.isfinite(z[i])
+        uu = u[i] if good else 1.0
+        vv = v[i] if good else 1.0
+        q = np.intp(pcl[zone[i], int(vv + 0.5) >> _SHIFT, int(uu + 0.5) >> _SHIFT])
+        a = ALPHA_SHARE * amp[i] * inv[i]
+        y = a * z[i] - 0.5 * a * a + logit_q[q]
+        x = (y - tab_lo) * tab_scale + 0.5
+        x = tab[q, int(min(max(x if good else 0.0, 0.0), top))]
+        out[i] = x if good else np.nan
+
+
+@njit(cache=True)
+def _paths(u0, v0, um, vm, up, vp, amp, G, gvals, pu, pv, pa, m):
+    """One predicted dot's places over the slope grid ``gvals`` (S,) into ``pu``, ``pv``
+    (its response ``amp`` into ``pa``) from ``m`` on: the path ``p(g)``, the parabola through
+    (um, vm), (u0, v0), (up, vp) at g = -G, 0, G. Returns the end."""
     bu = (up - um) / (2.0 * G)
     bv = (vp - vm) / (2.0 * G)
     cu = (up + um - 2.0 * u0) / (2.0 * G * G)
     cv = (vp + vm - 2.0 * v0) / (2.0 * G * G)
     for gi in range(len(gvals)):
         g = gvals[gi]
-        ok, x = _soft(u0 + bu * g + cu * g * g, v0 + bv * g + cv * g * g, su, sv, amp, resp, chance)  # fmt: skip
-        if ok:
-            score[gi] += x
-            if x > 0.0:
-                count[gi] += 1
+        pu[m] = u0 + bu * g + cu * g * g
+        pv[m] = v0 + bv * g + cv * g * g
+        pa[m] = amp
+        m += 1
+    return m
+
+
+@njit(cache=True)
+def _add_paths(x, m0, sides, n, ns, score, count):
+    """Add the log-likelihood ratios ``x`` of ``n`` dots' paths of ``ns`` places each (from
+    ``m0`` on, dot after dot), the dot i on the side ``sides[i]``, to ``score`` (2, S) per
+    slope; ``count`` (2, S) counts the places that favour a dot. Places that cannot be read
+    count neither way."""
+    m = m0
+    for i in range(n):
+        sd = sides[i]
+        for gi in range(ns):
+            if np.isfinite(x[m]):
+                score[sd, gi] += x[m]
+                if x[m] > 0.0:
+                    count[sd, gi] += 1
+            m += 1
 
 
 @njit(cache=True)
@@ -649,23 +695,23 @@ def _log_mean_exp(x):
     return x[best] + math.log(acc / len(x)), best
 
 
-#: Columns of a predicted dot's record (:func:`_slope_zero`): side, dot, the curve's range,
-#: cosine and sine across the slits at the dot's angle along them, its place (u, v) at the
-#: slope 0 and its expected response.
+#: Rows of the predicted dots' records (:func:`_slope_zero`), a column per dot: side, dot, the
+#: curve's range, cosine and sine across the slits at the dot's angle along them, its place
+#: (u, v) at the slope 0 and its expected response.
 _REC = 8
 
 
 @njit(cache=True)
-def _slope_zero(k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dots, su, sv, amp,
-                beta, resp, chance, rec, n0, score, count, nuse):  # fmt: skip
+def _slope_zero(k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dots, amp, beta,
+                shape, rec, n0, nuse):  # fmt: skip
     """The dots of a window's slit hypothesis ``k`` (its curve ``cp``, ``sp``, ``ss``, ``rr``
-    sorted by ``idx``, its stripe's direction ``su``, ``sv`` and peak ``amp``) at the slope 0:
-    per side into ``score`` (2, S) and ``count`` (2, S) (column 0) and ``nuse`` (2,) (the dots
-    in the image), each dot in the image recorded in ``rec`` (R, :data:`_REC`) from row
-    ``n0`` on. Returns the end of the records, or -1 when ``rec`` is too short."""
+    sorted by ``idx``, its stripe's peak ``amp``) at the slope 0: each dot predicted in the
+    image (of ``shape`` (H, W)) recorded in ``rec`` (:data:`_REC`, R) from column ``n0`` on,
+    counted per side in ``nuse`` (2,). Returns the end of the records, or -1 when ``rec`` is
+    too short."""
     C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
-    h, w = chance[0].shape
+    h, w = shape
     nb = len(b_start) - 1
     b0 = max(0, int(math.floor((phmin - hb[k] - phi0) / bw)))
     b1 = min(nb - 1, int(math.floor((phmax + hb[k] - phi0) / bw)))
@@ -687,30 +733,27 @@ def _slope_zero(k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dot
                               O[2] + r0 * dirs[j, 2], cam, R, t, dist)  # fmt: skip
             if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
                 continue
-            if n >= rec.shape[0]:
+            if n >= rec.shape[1]:
                 return -1
             nuse[side] += 1
-            a = beta[j] * amp
-            ok, x = _soft(u0, v0, su, sv, a, resp, chance)
-            if ok:
-                score[side, 0] += x
-                if x > 0.0:
-                    count[side, 0] += 1
-            rec[n, 0], rec[n, 1], rec[n, 2], rec[n, 3] = side, j, rc, cpc
-            rec[n, 4], rec[n, 5], rec[n, 6], rec[n, 7] = spc, u0, v0, a
+            rec[0, n], rec[1, n], rec[2, n], rec[3, n] = side, j, rc, cpc
+            rec[4, n], rec[5, n], rec[6, n], rec[7, n] = spc, u0, v0, beta[j] * amp
             n += 1
     return n
 
 
 @njit(cache=True)
-def _slopes(rec, n0, n1, rig, dots, su, sv, resp, chance, G, gvals, score, count):  # fmt: skip
-    """The recorded dots ``rec[n0:n1]`` (:func:`_slope_zero`) over the slopes ``gvals`` (S,),
-    per side into ``score`` (2, S) and ``count`` (2, S)."""
+def _slope_places(rec, n0, n1, rig, dots, G, gvals, pu, pv, pa, sides):
+    """The places of the recorded dots ``rec[:, n0:n1]`` (:func:`_slope_zero`) over the
+    slopes ``gvals`` (S,), dot after dot, into ``pu``, ``pv``, ``pa`` (at least (n1 - n0) S),
+    and their sides into ``sides``."""
     C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
+    m = 0
     for n in range(n0, n1):
-        side, j = int(rec[n, 0]), int(rec[n, 1])
-        rc, cpc, spc, u0, v0, a = rec[n, 2], rec[n, 3], rec[n, 4], rec[n, 5], rec[n, 6], rec[n, 7]
+        j = int(rec[1, n])
+        sides[n - n0] = int(rec[0, n])
+        rc, cpc, spc, u0, v0, a = rec[2, n], rec[3, n], rec[4, n], rec[5, n], rec[6, n], rec[7, n]
         dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
         rm = _range(rc, cpc, spc, dcp[j], dsp[j], -G)
         rp = _range(rc, cpc, spc, dcp[j], dsp[j], G)
@@ -718,8 +761,7 @@ def _slopes(rec, n0, n1, rig, dots, su, sv, resp, chance, G, gvals, score, count
         up, vp = _project(O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist)
         if not (np.isfinite(um) and np.isfinite(up)):
             um, vm, up, vp = u0, v0, u0, v0
-        _dot_path(u0, v0, um, vm, up, vp, G, su, sv, a, resp, chance, gvals, score[side],
-                  count[side])  # fmt: skip
+        m = _paths(u0, v0, um, vm, up, vp, a, G, gvals, pu, pv, pa, m)
 
 
 @njit(cache=True, parallel=True)
@@ -751,6 +793,7 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
     curves of up to ``maxt`` points."""
     C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     nslit = planes.shape[0]
+    shape = chance[0].shape
     gvals = _slope_grid(G, steps)
     ns = len(gvals)
     cp = np.empty(maxt)
@@ -762,7 +805,12 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
     count = np.zeros((2, ns), np.int64)
     nuse = np.zeros(2, np.int64)
     quick = np.empty(nslit)
-    rec = np.empty((1024, _REC))
+    rec = np.empty((_REC, 1024))
+    work = _scratch(1024)
+    pu = np.empty(1024)
+    pv = np.empty(1024)
+    pa = np.empty(1024)
+    sides = np.empty(1024, np.int64)
     rec_start = np.zeros(nslit, np.int64)
     rec_end = np.zeros(nslit, np.int64)
     for wi in range(w0, w1):
@@ -771,8 +819,9 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
         if nt <= 0:
             continue
         n = 0
-        for k in range(nslit):  # every slit at the slope 0
+        for k in range(nslit):  # every slit's dots at the slope 0
             quick[k] = -np.inf
+            rec_start[k] = rec_end[k] = -1
             if not hyp[wi, k] or not np.isfinite(hb[k]):
                 continue
             ok, zmean, nc, phmin, phmax = _curve(
@@ -794,34 +843,59 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
             means[wi, k, 2] = m2 / nc
             means[wi, k, 3] = m3 / nc
             while True:
-                score[:] = 0.0
-                count[:] = 0
                 nuse[:] = 0
                 end = _slope_zero(k, ss[idx[0]], ss[idx[nc - 1]], phmin, phmax, cp, sp, ss, rr,
-                                  idx, nc, rig, dots, wsu[wi], wsv[wi], wamp[wi], beta, resp,
-                                  chance, rec, n, score, count, nuse)  # fmt: skip
+                                  idx, nc, rig, dots, wamp[wi], beta, shape, rec, n,
+                                  nuse)  # fmt: skip
                 if end >= 0:
                     break
-                grown = np.empty((2 * rec.shape[0], _REC))
-                grown[:n] = rec[:n]
+                grown = np.empty((_REC, 2 * rec.shape[1]))
+                grown[:, :n] = rec[:, :n]
                 rec = grown
             rec_start[k], rec_end[k] = n, end
             n = end
-            for sd in range(2):  # the marginal's lower bound: the slope 0 alone
+            used[wi, k, 0] = nuse[0]
+            used[wi, k, 1] = nuse[1]
+        if work[0].shape[0] < n:
+            work = _scratch(2 * n)
+        _llr_at(rec[5], rec[6], rec[7], n, wsu[wi], wsv[wi], resp, chance, work)
+        x = work[5]
+        for k in range(nslit):  # the marginal's lower bound: the slope 0 alone
+            if rec_start[k] < 0:
+                continue
+            score[:, 0] = 0.0
+            count[:, 0] = 0
+            for i in range(rec_start[k], rec_end[k]):
+                if np.isfinite(x[i]):
+                    sd = int(rec[0, i])
+                    score[sd, 0] += x[i]
+                    if x[i] > 0.0:
+                        count[sd, 0] += 1
+            for sd in range(2):
                 llr[wi, k, sd] = score[sd, 0] - math.log(ns)
                 found[wi, k, sd] = count[sd, 0]
-                used[wi, k, sd] = nuse[sd]
                 slope[wi, k, sd] = 0.0
             quick[k] = score[0, 0] + score[1, 0]
-        ranked = np.argsort(-quick)  # the slits worth the slope: the best at the slope 0
-        for r in range(nslit):
-            k = ranked[r]
-            if not quick[k] >= quick[ranked[0]] - keep or not np.isfinite(quick[k]):
-                break
+        best = -np.inf
+        for k in range(nslit):
+            best = max(best, quick[k])
+        for k in range(nslit):  # the slits worth the slope: near the best at the slope 0
+            if not (np.isfinite(quick[k]) and quick[k] >= best - keep):
+                continue
+            nd = rec_end[k] - rec_start[k]
+            if pu.shape[0] < nd * ns:
+                pu = np.empty(2 * nd * ns)
+                pv = np.empty(2 * nd * ns)
+                pa = np.empty(2 * nd * ns)
+            if sides.shape[0] < nd:
+                sides = np.empty(2 * nd, np.int64)
+            if work[0].shape[0] < nd * ns:
+                work = _scratch(2 * nd * ns)
+            _slope_places(rec, rec_start[k], rec_end[k], rig, dots, G, gvals, pu, pv, pa, sides)
+            _llr_at(pu, pv, pa, nd * ns, wsu[wi], wsv[wi], resp, chance, work)
             score[:] = 0.0
             count[:] = 0
-            _slopes(rec, rec_start[k], rec_end[k], rig, dots, wsu[wi], wsv[wi], resp, chance,
-                    G, gvals, score, count)  # fmt: skip
+            _add_paths(work[5], 0, sides, nd, ns, score, count)
             for sd in range(2):
                 lm, bi = _log_mean_exp(score[sd])
                 llr[wi, k, sd] = lm
@@ -895,8 +969,17 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
     rrb = np.empty(maxt)
     ib = np.empty(maxt, np.int64)
     gvals = _slope_grid(G, steps)
-    score = np.zeros((2, len(gvals)))
-    count = np.zeros((2, len(gvals)), np.int64)
+    ns = len(gvals)
+    score = np.zeros((2, ns))
+    count = np.zeros((2, ns), np.int64)
+    fu = np.empty(256)  # the dots' places on the surface through both stripes
+    fv = np.empty(256)
+    fa = np.empty(256)
+    pu = np.empty(256 * ns)  # their paths with a free slope about the nearer stripe
+    pv = np.empty(256 * ns)
+    pa = np.empty(256 * ns)
+    sides = np.empty(256, np.int64)
+    work = _scratch(256 * ns)
     for p in range(p0, p1):
         a0, na0 = a_start[p], a_start[p + 1] - a_start[p]
         c0, nb0 = b_start_[p], b_start_[p + 1] - b_start_[p]
@@ -939,9 +1022,8 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
                 continue
             b0 = max(0, int(math.floor((min(pha0, phb0) - phi0) / bw)))
             b1 = min(nb - 1, int(math.floor((max(pha1, phb1) - phi0) / bw)))
-            fx = 0.0
-            score[:] = 0.0
-            count[:] = 0
+            nf = 0
+            nd = 0
             for bb in range(b0, b1 + 1):
                 lo = _first_from(dss, d_order, b_start[bb], b_start[bb + 1], ssmin)
                 for q in range(lo, b_start[bb + 1]):
@@ -958,14 +1040,17 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
                     f = (dsp[j] * cpa_ - dcp[j] * spa_) / width
                     if f <= 0.0 or f >= 1.0:
                         continue
+                    if nf >= fu.shape[0]:
+                        fu, fv, fa = _grown(fu, nf), _grown(fv, nf), _grown(fa, nf)
                     dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
                     # the surface between the two stripes: range linear across
                     r = ra + f * (rb - ra)
-                    u0, v0 = _project(O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist)
+                    fu[nf], fv[nf] = _project(
+                        O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist
+                    )
                     a = beta[j] * gamp[p]
-                    ok, x = _soft(u0, v0, gsu[p], gsv[p], a, resp, chance)
-                    if ok:
-                        fx += x
+                    fa[nf] = a
+                    nf += 1
                     # the same dot with a free slope about the nearer stripe
                     side = 0 if f <= 0.5 else 1
                     cpc, spc, rc = (cpa_, spa_, ra) if side == 0 else (cpb_, spb_, rb)
@@ -985,8 +1070,23 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
                     )
                     if not (np.isfinite(um) and np.isfinite(up)):
                         um, vm, up, vp = u0, v0, u0, v0
-                    _dot_path(u0, v0, um, vm, up, vp, G, gsu[p], gsv[p], a, resp, chance, gvals,
-                              score[side], count[side])  # fmt: skip
+                    if nd >= sides.shape[0]:
+                        sides = _grown(sides, nd)
+                        pu, pv, pa = _grown(pu, nd * ns), _grown(pv, nd * ns), _grown(pa, nd * ns)
+                    sides[nd] = side
+                    _paths(u0, v0, um, vm, up, vp, a, G, gvals, pu, pv, pa, nd * ns)
+                    nd += 1
+            if work[0].shape[0] < max(nf, nd * ns):
+                work = _scratch(2 * max(nf, nd * ns))
+            _llr_at(fu, fv, fa, nf, gsu[p], gsv[p], resp, chance, work)
+            fx = 0.0
+            for i in range(nf):
+                if np.isfinite(work[5][i]):
+                    fx += work[5][i]
+            _llr_at(pu, pv, pa, nd * ns, gsu[p], gsv[p], resp, chance, work)
+            score[:] = 0.0
+            count[:] = 0
+            _add_paths(work[5], 0, sides, nd, ns, score, count)
             fixed[p, k] = fx
             free_a[p, k] = _log_mean_exp(score[0])[0]
             free_b[p, k] = _log_mean_exp(score[1])[0]

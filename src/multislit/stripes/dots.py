@@ -285,25 +285,25 @@ def _responses(smoothed, u, v, su, sv, reach, out, level):
         out[i], level[i] = response_at(smoothed, u[i], v[i], su[i], sv[i], reach)
 
 
-@njit(cache=True, inline="always")
-def z_at(smoothed, u, v, su, sv, zone, reach, lut_lo, lut_scale, lut_offset, lut_inv_sigma):
-    """The dots' response at (u, v) px (:func:`response_at`) in noise sigmas of its ``zone``
-    (0 clear of the stripes, 1 near one) and level, and the inverse of that noise (1 /
-    intensity units); NaN, 0 where it cannot be read."""
-    r, level = response_at(smoothed, u, v, su, sv, reach)
-    if not np.isfinite(r):
-        return np.nan, 0.0
-    i = int((level - lut_lo[zone]) * lut_scale[zone])
-    i = min(max(i, 0), lut_offset.shape[1] - 1)
-    inv = lut_inv_sigma[zone, i]
-    return (r - lut_offset[zone, i]) * inv, inv
-
-
 @njit(cache=True)
-def _zs(smoothed, u, v, su, sv, zone, reach, lut_lo, lut_scale, lut_offset, lut_inv_sigma, out):
-    for i in range(len(u)):
-        out[i], _ = z_at(smoothed, u[i], v[i], su[i], sv[i], zone[i], reach, lut_lo, lut_scale,
-                         lut_offset, lut_inv_sigma)  # fmt: skip
+def z_many(smoothed, u, v, su, sv, zone, n, reach, lut_lo, lut_scale, lut_offset, lut_inv_sigma,
+           z, inv):  # fmt: skip
+    """The dots' response at the places (``u[i]``, ``v[i]``) px, i < ``n`` (:func:`response_at`,
+    along the directions ``su``, ``sv``) in noise sigmas of each place's ``zone`` (0 clear of
+    the stripes, 1 near one) and level, into ``z``, and the inverse of that noise (1 /
+    intensity units) into ``inv``; NaN, 0 where it cannot be read. One loop without branches
+    on the data, which the compiler vectorises."""
+    top = lut_offset.shape[1] - 1.0
+    for i in range(n):
+        r, level = response_at(smoothed, u[i], v[i], su[i], sv[i], reach)
+        ok = np.isfinite(r)
+        zn = np.intp(zone[i])
+        x = (level - lut_lo[zn]) * lut_scale[zn]
+        k = int(min(max(x if ok else 0.0, 0.0), top))
+        s = lut_inv_sigma[zn, k]
+        zi = (r - lut_offset[zn, k]) * s
+        z[i] = zi if ok else np.nan
+        inv[i] = s if ok else 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,7 +343,7 @@ class DotResponse:
     lut_inv_sigma: F64
 
     def kernel_args(self) -> tuple:
-        """What the compiled kernels read (:func:`z_at`): (smoothed, reach, lut_lo, lut_scale,
+        """What the compiled kernels read (:func:`z_many`): (smoothed, reach, lut_lo, lut_scale,
         lut_offset, lut_inv_sigma)."""
         return (
             self.smoothed,
@@ -369,13 +369,14 @@ class DotResponse:
 
     def z(self, u: ArrayLike, v: ArrayLike, angle: ArrayLike, near: ArrayLike) -> F64:
         """(M,) float64: the response at (u, v) in noise sigmas of its zone (``near`` (M,)
-        bool: near a stripe) and level (:func:`z_at`); NaN where it cannot be read."""
+        bool: near a stripe) and level (:func:`z_many`); NaN where it cannot be read."""
         u = np.ascontiguousarray(u, np.float64).ravel()
         v = np.ascontiguousarray(v, np.float64).ravel()
         a = np.broadcast_to(np.asarray(angle, np.float64), u.shape)
         zone = np.ascontiguousarray(np.broadcast_to(np.asarray(near, bool), u.shape), np.intp)
         out = np.empty(u.size)
-        _zs(self.smoothed, u, v, np.sin(a), np.cos(a), zone, *self.kernel_args()[1:], out)
+        z_many(self.smoothed, u, v, np.sin(a), np.cos(a), zone, u.size, *self.kernel_args()[1:],
+               out, np.empty(u.size))  # fmt: skip
         return out
 
 
