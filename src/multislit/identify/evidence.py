@@ -480,19 +480,30 @@ def gap_evidence(
 
 @njit(cache=True, inline="always")
 def _project(x, y, z, cam, R, t, dist):
-    """World point -> pixel (u, v) with OpenCV's distortion; (nan, nan) behind the camera."""
+    """World point -> pixel (u, v) with OpenCV's distortion; (nan, nan) behind the camera.
+    Without branches on the data, so that loops over points vectorise."""
     xc = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
     yc = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
     zc = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-    if zc <= 1e-9:
-        return np.nan, np.nan
+    front = zc > 1e-9
+    zc = zc if front else 1.0
     a = xc / zc
     b = yc / zc
     r2 = a * a + b * b
     rad = 1.0 + r2 * (dist[0] + r2 * (dist[1] + r2 * dist[4]))
     ad = a * rad + 2.0 * dist[2] * a * b + dist[3] * (r2 + 2.0 * a * a)
     bd = b * rad + dist[2] * (r2 + 2.0 * b * b) + 2.0 * dist[3] * a * b
-    return cam[0] * ad + cam[2], cam[1] * bd + cam[3]
+    u = cam[0] * ad + cam[2]
+    v = cam[1] * bd + cam[3]
+    return (u if front else np.nan), (v if front else np.nan)
+
+
+@njit(cache=True)
+def _project_many(x, y, z, n, cam, R, t, dist, u, v):
+    """The world points (``x[i]``, ``y[i]``, ``z[i]``), i < ``n``, -> pixels into ``u``,
+    ``v`` (:func:`_project`)."""
+    for i in range(n):
+        u[i], v[i] = _project(x[i], y[i], z[i], cam, R, t, dist)
 
 
 @njit(cache=True)
@@ -563,10 +574,10 @@ def _first_from(key, d_order, lo, hi, smin):
 
 
 @njit(cache=True, inline="always")
-def _at(ss, cp, sp, rr, idx, nt, ssj):
+def _at(ss, cp, sp, rr, idx, nt, ssj, m):
     """The curve's cosine and sine across the slits and its range where the sine of its angle
-    along them is ``ssj``, linear between its points."""
-    m = 0
+    along them is ``ssj``, linear between its points, and the segment of the curve it lies
+    on, searched from the segment ``m`` on (that of a ``ssj`` no larger, or 0)."""
     while m < nt - 2 and ss[idx[m + 1]] < ssj:
         m += 1
     i0 = idx[m]
@@ -578,6 +589,7 @@ def _at(ss, cp, sp, rr, idx, nt, ssj):
         cp[i0] + f * (cp[i1] - cp[i0]),
         sp[i0] + f * (sp[i1] - sp[i0]),
         rr[i0] + f * (rr[i1] - rr[i0]),
+        m,
     )
 
 
@@ -695,51 +707,82 @@ def _log_mean_exp(x):
     return x[best] + math.log(acc / len(x)), best
 
 
-#: Rows of the predicted dots' records (:func:`_slope_zero`), a column per dot: side, dot, the
-#: curve's range, cosine and sine across the slits at the dot's angle along them, its place
-#: (u, v) at the slope 0 and its expected response.
+#: Rows of the predicted dots' records (:func:`_in_image`), a column per dot in the image: side,
+#: dot, the curve's range, cosine and sine across the slits at the dot's angle along them, its
+#: place (u, v) at the slope 0 and its expected response.
 _REC = 8
+
+
+#: Rows of the candidate dots (:func:`_slope_zero`), a column per dot: side, dot, the curve's
+#: range, cosine and sine across the slits at the dot's angle along them, its place (x, y, z)
+#: in the world at the slope 0 and its expected response.
+_CAND = 9
 
 
 @njit(cache=True)
 def _slope_zero(k, ssmin, ssmax, phmin, phmax, cp, sp, ss, rr, idx, nc, rig, dots, amp, beta,
-                shape, rec, n0, nuse):  # fmt: skip
+                cand, n0):  # fmt: skip
     """The dots of a window's slit hypothesis ``k`` (its curve ``cp``, ``sp``, ``ss``, ``rr``
-    sorted by ``idx``, its stripe's peak ``amp``) at the slope 0: each dot predicted in the
-    image (of ``shape`` (H, W)) recorded in ``rec`` (:data:`_REC`, R) from column ``n0`` on,
-    counted per side in ``nuse`` (2,). Returns the end of the records, or -1 when ``rec`` is
-    too short."""
+    sorted by ``idx``, its stripe's peak ``amp``) at the slope 0: each dot in the slit's band
+    beside the curve recorded in ``cand`` (:data:`_CAND`, R) from column ``n0`` on. Returns
+    the end of the records, or -1 when ``cand`` is too short."""
     C, planes, hb, shb, phi_sign, O, F, cam, R, t, dist, zmin, zmax = rig
     dirs, dcp, dsp, dss, d_order, b_start, phi0, bw = dots
-    h, w = shape
     nb = len(b_start) - 1
     b0 = max(0, int(math.floor((phmin - hb[k] - phi0) / bw)))
     b1 = min(nb - 1, int(math.floor((phmax + hb[k] - phi0) / bw)))
     n = n0
     for b in range(b0, b1 + 1):
         lo = _first_from(dss, d_order, b_start[b], b_start[b + 1], ssmin)
+        m = 0  # the dots of a bin come in the order along the slits
         for q in range(lo, b_start[b + 1]):
             j = d_order[q]
             ssj = dss[j]
             if ssj > ssmax:
                 break
-            cpc, spc, rc = _at(ss, cp, sp, rr, idx, nc, ssj)
+            cpc, spc, rc, m = _at(ss, cp, sp, rr, idx, nc, ssj, m)
             sd = dsp[j] * cpc - dcp[j] * spc  # the sine of the dot's angle from the curve
             if abs(sd) > shb[k]:
                 continue
-            side = 1 if sd * phi_sign > 0 else 0
-            r0 = _range(rc, cpc, spc, dcp[j], dsp[j], 0.0)
-            u0, v0 = _project(O[0] + r0 * dirs[j, 0], O[1] + r0 * dirs[j, 1],
-                              O[2] + r0 * dirs[j, 2], cam, R, t, dist)  # fmt: skip
-            if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
-                continue
-            if n >= rec.shape[1]:
+            if n >= cand.shape[1]:
                 return -1
-            nuse[side] += 1
-            rec[0, n], rec[1, n], rec[2, n], rec[3, n] = side, j, rc, cpc
-            rec[4, n], rec[5, n], rec[6, n], rec[7, n] = spc, u0, v0, beta[j] * amp
+            r0 = _range(rc, cpc, spc, dcp[j], dsp[j], 0.0)
+            cand[0, n] = 1 if sd * phi_sign > 0 else 0
+            cand[1, n], cand[2, n], cand[3, n], cand[4, n] = j, rc, cpc, spc
+            cand[5, n] = O[0] + r0 * dirs[j, 0]
+            cand[6, n] = O[1] + r0 * dirs[j, 1]
+            cand[7, n] = O[2] + r0 * dirs[j, 2]
+            cand[8, n] = beta[j] * amp
             n += 1
     return n
+
+
+@njit(cache=True)
+def _in_image(cand, n, shape, cam, R, t, dist, pu, pv, rec, rec_start, rec_end, nuse):
+    """The candidates ``cand[:, :n]`` (:func:`_slope_zero`) projected into the image (of
+    ``shape`` (H, W); their places into ``pu``, ``pv``), those in it recorded in ``rec``
+    (:data:`_REC`, at least n) in their order: each slit's range of candidates, ``rec_start``,
+    ``rec_end`` (N,) (-1: none), becomes its range of records, and its records per side are
+    counted in ``nuse`` (N, 2)."""
+    h, w = shape
+    _project_many(cand[5], cand[6], cand[7], n, cam, R, t, dist, pu, pv)
+    m = 0
+    for k in range(len(rec_start)):
+        if rec_start[k] < 0:
+            continue
+        m0 = m
+        nuse[k, 0] = nuse[k, 1] = 0
+        for i in range(rec_start[k], rec_end[k]):
+            u0, v0 = pu[i], pv[i]
+            if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
+                continue
+            side = int(cand[0, i])
+            nuse[k, side] += 1
+            rec[0, m], rec[1, m], rec[2, m], rec[3, m] = side, cand[1, i], cand[2, i], cand[3, i]
+            rec[4, m], rec[5, m], rec[6, m], rec[7, m] = cand[4, i], u0, v0, cand[8, i]
+            m += 1
+        rec_start[k], rec_end[k] = m0, m
+    return m
 
 
 @njit(cache=True)
@@ -803,9 +846,10 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
     idx = np.empty(maxt, np.int64)
     score = np.zeros((2, ns))
     count = np.zeros((2, ns), np.int64)
-    nuse = np.zeros(2, np.int64)
     quick = np.empty(nslit)
+    cand = np.empty((_CAND, 1024))
     rec = np.empty((_REC, 1024))
+    nuse = np.zeros((nslit, 2), np.int64)
     work = _scratch(1024)
     pu = np.empty(1024)
     pv = np.empty(1024)
@@ -843,21 +887,28 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
             means[wi, k, 2] = m2 / nc
             means[wi, k, 3] = m3 / nc
             while True:
-                nuse[:] = 0
                 end = _slope_zero(k, ss[idx[0]], ss[idx[nc - 1]], phmin, phmax, cp, sp, ss, rr,
-                                  idx, nc, rig, dots, wamp[wi], beta, shape, rec, n,
-                                  nuse)  # fmt: skip
+                                  idx, nc, rig, dots, wamp[wi], beta, cand, n)  # fmt: skip
                 if end >= 0:
                     break
-                grown = np.empty((_REC, 2 * rec.shape[1]))
-                grown[:, :n] = rec[:, :n]
-                rec = grown
+                grown = np.empty((_CAND, 2 * cand.shape[1]))
+                grown[:, :n] = cand[:, :n]
+                cand = grown
             rec_start[k], rec_end[k] = n, end
             n = end
-            used[wi, k, 0] = nuse[0]
-            used[wi, k, 1] = nuse[1]
+        if rec.shape[1] < n:
+            rec = np.empty((_REC, cand.shape[1]))
         if work[0].shape[0] < n:
-            work = _scratch(2 * n)
+            work = _scratch(cand.shape[1])
+        if pu.shape[0] < n:
+            pu = np.empty(cand.shape[1])
+            pv = np.empty(cand.shape[1])
+            pa = np.empty(cand.shape[1])
+        n = _in_image(cand, n, shape, cam, R, t, dist, pu, pv, rec, rec_start, rec_end, nuse)
+        for k in range(nslit):
+            if rec_start[k] >= 0:
+                used[wi, k, 0] = nuse[k, 0]
+                used[wi, k, 1] = nuse[k, 1]
         _llr_at(rec[5], rec[6], rec[7], n, wsu[wi], wsv[wi], resp, chance, work)
         x = work[5]
         for k in range(nslit):  # the marginal's lower bound: the slope 0 alone
@@ -1026,13 +1077,14 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
             nd = 0
             for bb in range(b0, b1 + 1):
                 lo = _first_from(dss, d_order, b_start[bb], b_start[bb + 1], ssmin)
+                ma = mb = 0  # the dots of a bin come in the order along the slits
                 for q in range(lo, b_start[bb + 1]):
                     j = d_order[q]
                     ssj = dss[j]
                     if ssj > ssmax:
                         break
-                    cpa_, spa_, ra = _at(ssa, cpa, spa, rra, ia, na, ssj)
-                    cpb_, spb_, rb = _at(ssb, cpb, spb, rrb, ib, nbp, ssj)
+                    cpa_, spa_, ra, ma = _at(ssa, cpa, spa, rra, ia, na, ssj, ma)
+                    cpb_, spb_, rb, mb = _at(ssb, cpb, spb, rrb, ib, nbp, ssj, mb)
                     # the dot's place across, from a's stripe (0) to b's (1)
                     width = spb_ * cpa_ - cpb_ * spa_
                     if abs(width) < 1e-12:
@@ -1203,11 +1255,12 @@ def _match_kernel(rays, order, win_start, windows, labels, slopes, rig, dots, ou
         b1 = min(nb - 1, int(math.floor((phmax + hb[k] - phi0) / bw)))
         for b in range(b0, b1 + 1):
             lo = _first_from(dss, d_order, b_start[b], b_start[b + 1], ssmin)
+            m = 0  # the dots of a bin come in the order along the slits
             for q in range(lo, b_start[b + 1]):
                 j = d_order[q]
                 if dss[j] > ssmax:
                     break
-                cpc, spc, rc = _at(ss, cp, sp, rr, idx, nc, dss[j])
+                cpc, spc, rc, m = _at(ss, cp, sp, rr, idx, nc, dss[j], m)
                 sd = dsp[j] * cpc - dcp[j] * spc
                 if abs(sd) > shb[k]:
                     continue
