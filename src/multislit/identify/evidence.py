@@ -979,6 +979,21 @@ def _point(O, F, cp, sp, ss, r):
     )
 
 
+#: Rows of the dots between two pieces (:func:`_gap_run`), a column per dot: side (the nearer
+#: stripe's), expected response, and in the world its place on the surface through both stripes,
+#: its place at the slope 0 about the nearer stripe and at the slopes -G and G (x, y, z each).
+_GAP_PTS = 14
+
+
+@njit(cache=True, inline="always")
+def _on_ray(pts, row, i, O, d, r):
+    """The point at range ``r`` on the ray from ``O`` along ``d`` (3,) into ``pts[row:row+3,
+    i]``."""
+    pts[row, i] = O[0] + r * d[0]
+    pts[row + 1, i] = O[1] + r * d[1]
+    pts[row + 2, i] = O[2] + r * d[2]
+
+
 @njit(cache=True, parallel=True)
 def _gap_kernel(rays, a_order, a_start, b_order, b_start_, ga, gb, means, rig, dots, gsu, gsv,
                 gamp, beta, resp, chance, G, steps, pairs, fixed, free_a, free_b,
@@ -1023,9 +1038,8 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
     ns = len(gvals)
     score = np.zeros((2, ns))
     count = np.zeros((2, ns), np.int64)
-    fu = np.empty(256)  # the dots' places on the surface through both stripes
-    fv = np.empty(256)
-    fa = np.empty(256)
+    pts = np.empty((_GAP_PTS, 256))  # the dots between the pieces, in the world
+    uv = np.empty((8, 256))  # ... and in the image
     pu = np.empty(256 * ns)  # their paths with a free slope about the nearer stripe
     pv = np.empty(256 * ns)
     pa = np.empty(256 * ns)
@@ -1074,7 +1088,6 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
             b0 = max(0, int(math.floor((min(pha0, phb0) - phi0) / bw)))
             b1 = min(nb - 1, int(math.floor((max(pha1, phb1) - phi0) / bw)))
             nf = 0
-            nd = 0
             for bb in range(b0, b1 + 1):
                 lo = _first_from(dss, d_order, b_start[bb], b_start[bb + 1], ssmin)
                 ma = mb = 0  # the dots of a bin come in the order along the slits
@@ -1092,45 +1105,45 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
                     f = (dsp[j] * cpa_ - dcp[j] * spa_) / width
                     if f <= 0.0 or f >= 1.0:
                         continue
-                    if nf >= fu.shape[0]:
-                        fu, fv, fa = _grown(fu, nf), _grown(fv, nf), _grown(fa, nf)
-                    dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-                    # the surface between the two stripes: range linear across
-                    r = ra + f * (rb - ra)
-                    fu[nf], fv[nf] = _project(
-                        O[0] + r * dx, O[1] + r * dy, O[2] + r * dz, cam, R, t, dist
-                    )
-                    a = beta[j] * gamp[p]
-                    fa[nf] = a
-                    nf += 1
-                    # the same dot with a free slope about the nearer stripe
+                    if nf >= pts.shape[1]:
+                        grown = np.empty((_GAP_PTS, 2 * pts.shape[1]))
+                        grown[:, :nf] = pts[:, :nf]
+                        pts = grown
+                    # on the surface between the two stripes (range linear across), and with a
+                    # free slope about the nearer stripe
                     side = 0 if f <= 0.5 else 1
                     cpc, spc, rc = (cpa_, spa_, ra) if side == 0 else (cpb_, spb_, rb)
-                    r0 = _range(rc, cpc, spc, dcp[j], dsp[j], 0.0)
-                    u0, v0 = _project(
-                        O[0] + r0 * dx, O[1] + r0 * dy, O[2] + r0 * dz, cam, R, t, dist
-                    )
-                    if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
-                        continue
-                    rm = _range(rc, cpc, spc, dcp[j], dsp[j], -G)
-                    rp = _range(rc, cpc, spc, dcp[j], dsp[j], G)
-                    um, vm = _project(
-                        O[0] + rm * dx, O[1] + rm * dy, O[2] + rm * dz, cam, R, t, dist
-                    )
-                    up, vp = _project(
-                        O[0] + rp * dx, O[1] + rp * dy, O[2] + rp * dz, cam, R, t, dist
-                    )
-                    if not (np.isfinite(um) and np.isfinite(up)):
-                        um, vm, up, vp = u0, v0, u0, v0
-                    if nd >= sides.shape[0]:
-                        sides = _grown(sides, nd)
-                        pu, pv, pa = _grown(pu, nd * ns), _grown(pv, nd * ns), _grown(pa, nd * ns)
-                    sides[nd] = side
-                    _paths(u0, v0, um, vm, up, vp, a, G, gvals, pu, pv, pa, nd * ns)
-                    nd += 1
-            if work[0].shape[0] < max(nf, nd * ns):
-                work = _scratch(2 * max(nf, nd * ns))
-            _llr_at(fu, fv, fa, nf, gsu[p], gsv[p], resp, chance, work)
+                    pts[0, nf] = side
+                    pts[1, nf] = beta[j] * gamp[p]
+                    _on_ray(pts, 2, nf, O, dirs[j], ra + f * (rb - ra))
+                    _on_ray(pts, 5, nf, O, dirs[j], _range(rc, cpc, spc, dcp[j], dsp[j], 0.0))
+                    _on_ray(pts, 8, nf, O, dirs[j], _range(rc, cpc, spc, dcp[j], dsp[j], -G))
+                    _on_ray(pts, 11, nf, O, dirs[j], _range(rc, cpc, spc, dcp[j], dsp[j], G))
+                    nf += 1
+            if uv.shape[1] < nf:
+                uv = np.empty((8, pts.shape[1]))
+            if sides.shape[0] < nf:
+                sides = np.empty(pts.shape[1], np.int64)
+                pu = np.empty(pts.shape[1] * ns)
+                pv = np.empty(pts.shape[1] * ns)
+                pa = np.empty(pts.shape[1] * ns)
+            if work[0].shape[0] < nf * ns:
+                work = _scratch(pts.shape[1] * ns)
+            for c in range(4):
+                _project_many(pts[2 + 3 * c], pts[3 + 3 * c], pts[4 + 3 * c], nf, cam, R, t, dist,
+                              uv[2 * c], uv[2 * c + 1])  # fmt: skip
+            nd = 0
+            for i in range(nf):
+                u0, v0 = uv[2, i], uv[3, i]
+                if not (u0 >= 1.0 and u0 <= w - 2.0 and v0 >= 1.0 and v0 <= h - 2.0):
+                    continue
+                um, vm, up, vp = uv[4, i], uv[5, i], uv[6, i], uv[7, i]
+                if not (np.isfinite(um) and np.isfinite(up)):
+                    um, vm, up, vp = u0, v0, u0, v0
+                sides[nd] = int(pts[0, i])
+                _paths(u0, v0, um, vm, up, vp, pts[1, i], G, gvals, pu, pv, pa, nd * ns)
+                nd += 1
+            _llr_at(uv[0], uv[1], pts[1], nf, gsu[p], gsv[p], resp, chance, work)
             fx = 0.0
             for i in range(nf):
                 if np.isfinite(work[5][i]):
