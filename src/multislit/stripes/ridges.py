@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from multislit.stripes.centres import StripeCentres, find_ridge_centres_validated, row_maxima
-from multislit.stripes.chains import drop_short, link_segments, link_weak
+from multislit.stripes.chains import drop_short, lex_order, link_segments, link_weak
 from multislit.stripes.openings import remove_streaks
 from multislit.stripes.response import ridge_threshold
 from multislit.stripes.separation import (
@@ -293,7 +293,7 @@ def column_pass(
         own = region[a0:a1, b0:b1] == k
         np.copyto(dots[a0:a1, b0:b1], d, where=own)
     centres = StripeCentres(*(np.concatenate(x) for x in zip(*parts, strict=True)))
-    order = np.lexsort((centres.v, centres.u))
+    order = lex_order(centres.v, centres.u)
     centres = StripeCentres(*(x[order] for x in centres))
     firm, slope = np.concatenate(strong)[order], np.concatenate(lean)[order]
     segment = link_columns(centres, firm, slope, link, barrier)
@@ -717,7 +717,7 @@ def merge_passes(
         new_id = np.full(n, -1, np.int64)
         new_id[ids[np.argsort(mean_u[ids], kind="stable")]] = np.arange(ids.size)
         seg = np.where(lk, new_id[np.maximum(seg, 0)], -1)
-    order = np.lexsort((u, np.rint(v)))
+    order = lex_order(u, np.rint(v))
     return MergedCentres(
         StripeCentres(u[order], v[order], peak[order], width[order]),
         seg[order],
