@@ -437,16 +437,42 @@ def _blend(above, below, frac, rint, here, floor, t, n1, end_rows, whole):
     return min(val, float(here))
 
 
+#: A dot pixel lies above the opening by more than the dot threshold plus this fraction of
+#: the opening (:func:`dot_mask`).
+_DOT_OPENING_FRACTION = 0.05
+
+
 def dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
     """(H, W) uint8, 255 on the dot pixels :func:`fill_dots` refills: where ``opened`` lies
-    below ``hp`` by more than ``tau`` plus 5 % of itself, widened by 1 px for the dots' tails."""
-    diff = cv2.subtract(hp, opened)
+    below ``hp`` by more than ``tau`` plus 5 % of itself, widened by 1 px for the dots' tails.
+
+    Float32 images in one compiled pass (:func:`_above_opening`, no float temporaries), the
+    integer ones by OpenCV in their own type (saturating, as the comparison of integers needs).
+    """
     # + 5 % of the opening: the opening flattens the top of a tilted stripe by
     # A (1 - exp(-(s (L - 1) / 2)^2 / (2 sigma^2))), ~2.5 % of its peak A at slope s = 0.1; that
     # is not a dot, and flagging whole stripe tops would make runs too long to interpolate
-    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau)
-    mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=diff if diff.dtype == np.uint8 else None)
+    if hp.dtype == np.float32 and opened.dtype == np.float32:
+        mask = np.empty(hp.shape, np.uint8)
+        _above_opening(hp, opened, np.float32(_DOT_OPENING_FRACTION), np.float32(tau), mask)
+    else:
+        diff = cv2.subtract(hp, opened)
+        thr = cv2.addWeighted(opened, _DOT_OPENING_FRACTION, opened, 0.0, tau)
+        mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=diff if diff.dtype == np.uint8 else None)
     return cv2.dilate(mask, np.ones((3, 3), np.uint8))
+
+
+@njit(cache=True)
+def _above_opening(hp, opened, frac, tau, mask):
+    """``mask`` (H, W) uint8: 255 where ``hp`` - ``opened`` > ``frac`` ``opened`` + ``tau``
+    (float32 arithmetic; ``hp``, ``opened`` (H, W) float32), else 0."""
+    h, w = hp.shape
+    for r in range(h):
+        x = hp[r]
+        o = opened[r]
+        m = mask[r]
+        for c in range(w):
+            m[c] = 255 if x[c] - o[c] > o[c] * frac + tau else 0
 
 
 def _fill(
