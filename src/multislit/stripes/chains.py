@@ -137,18 +137,21 @@ def _first_neighbour(key, lean, span, max_du, max_g, sign):
     px of its column plus ``sign * lean * g`` (``lean`` (K,) px per row) in the first row
     g = 1 .. ``max_g`` away (``sign`` +1 below, -1 above) that has any, -1 if none, -2 if
     ambiguous. The windows move along the sorted key (back a little where the lean changes),
-    so two pointers per g replace the binary searches (the same comparisons)."""
+    so two pointers per g replace the binary searches (the same comparisons); a point's rows
+    are searched nearest first, and no further than the first with a candidate (a pointer
+    left behind catches up when its row is searched again)."""
     n = key.size
     found = np.full(n, -1, np.int64)
-    for g in range(1, max_g + 1):
-        tol = max_du * g
-        shift = float(sign * g) * span
-        lo = 0
-        hi = 0
-        for i in range(n):
-            centre = key[i] + shift + sign * g * lean[i]
+    los = np.zeros(max_g + 1, np.int64)
+    his = np.zeros(max_g + 1, np.int64)
+    for i in range(n):
+        for g in range(1, max_g + 1):
+            tol = max_du * g
+            centre = key[i] + float(sign * g) * span + sign * g * lean[i]
             a = centre - tol
             b = centre + tol
+            lo = los[g]
+            hi = his[g]
             while lo > 0 and key[lo - 1] >= a:
                 lo -= 1
             while lo < n and key[lo] < a:  # searchsorted(key, a, "left")
@@ -159,8 +162,11 @@ def _first_neighbour(key, lean, span, max_du, max_g, sign):
                 hi -= 1
             while hi < n and key[hi] <= b:  # searchsorted(key, b, "right")
                 hi += 1
-            if found[i] == -1 and hi > lo:
+            los[g] = lo
+            his[g] = hi
+            if hi > lo:
                 found[i] = lo if hi - lo == 1 else -2
+                break
     return found
 
 
