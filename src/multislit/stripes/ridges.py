@@ -261,7 +261,6 @@ def column_pass(
         level = saturation_level_of(img)
     length = opening_length(dot_size_px)
     margin = _TILE + 2 * length
-    region = tiles.repeat(_TILE, axis=0).repeat(_TILE, axis=1)[:h, :w]
     parts, strong, lean = [], [], []
     for k, (r0, r1, c0, c1) in enumerate(boxes, start=1):
         # rows a multiple of 8: the transposed crop's rows are read 8 px at a time
@@ -290,7 +289,7 @@ def column_pass(
         strong.append(firm[inside])
         lean.append(slope[inside])
         d = cv2.transpose(remove_streaks(cv2.subtract(hp, slits), length).astype(np.float32))
-        own = region[a0:a1, b0:b1] == k
+        own = _tile_mask(tiles, k, a0, a1, b0, b1)
         np.copyto(dots[a0:a1, b0:b1], d, where=own)
     centres = StripeCentres(*(np.concatenate(x) for x in zip(*parts, strict=True)))
     order = lex_order(centres.v, centres.u)
@@ -298,6 +297,17 @@ def column_pass(
     firm, slope = np.concatenate(strong)[order], np.concatenate(lean)[order]
     segment = link_columns(centres, firm, slope, link, barrier)
     return ColumnCentres(centres, segment, dots, len(boxes), firm, slope)
+
+
+def _tile_mask(
+    tiles: NDArray[np.int32], k: int, a0: int, a1: int, b0: int, b1: int
+) -> NDArray[np.bool_]:
+    """(a1 - a0, b1 - b0) bool: the pixels of rows ``a0`` .. ``a1`` - 1 and columns ``b0`` ..
+    ``b1`` - 1 whose tile of :data:`_TILE` px is in region ``k`` of ``tiles``."""
+    t0, u0 = a0 // _TILE, b0 // _TILE
+    sub = tiles[t0 : -(-a1 // _TILE), u0 : -(-b1 // _TILE)] == k
+    big = sub.repeat(_TILE, axis=0).repeat(_TILE, axis=1)
+    return big[a0 - t0 * _TILE : a1 - t0 * _TILE, b0 - u0 * _TILE : b1 - u0 * _TILE]
 
 
 def _widen8(a0: int, a1: int, n: int) -> tuple[int, int]:
