@@ -261,38 +261,66 @@ def settle_weak(
     if lk.size == 0:
         return segment
     order = lk[np.lexsort((along[lk], segment[lk]))]
-    s = segment[order]
-    bounds = np.flatnonzero(np.r_[True, s[1:] != s[:-1], True])
-    lo, hi = bounds[:-1], bounds[1:]
-    n = hi - lo
-    pos = np.arange(order.size)
-    st = strong[order]
-    first = np.minimum.reduceat(np.where(st, pos, order.size), lo)
-    last = np.maximum.reduceat(np.where(st, pos, -1), lo)
-    has = last >= 0
     if weak_length is None:
         weak_length = WEAK_LENGTH_FACTOR * int(min_length)
     tail = WEAK_TAIL_FACTOR * int(min_length)
-    cut_lead = has & (first - lo < tail)
-    cut_trail = has & (hi - 1 - last < tail)
-    k = np.repeat(np.arange(lo.size), n)
-    drop = (cut_lead[k] & (pos < first[k])) | (cut_trail[k] & (pos > last[k]))
-    drop |= ~has[k] & (n[k] < weak_length)
-    if peak is not None:
-        p = np.asarray(peak, np.float64)[order]
-        # the strong centres before and after each point in its segment
-        before = np.maximum.accumulate(np.where(st, pos, -1))
-        after = np.minimum.accumulate(np.where(st, pos, order.size)[::-1])[::-1]
-        b_in, a_in = before >= lo[k], after < hi[k]
-        pb = np.where(b_in, p[np.maximum(before, 0)], np.inf)
-        pa = np.where(a_in, p[np.minimum(after, order.size - 1)], np.inf)
-        # between strong centres the lower of the two; beyond the last (or before the first)
-        # strong one, that one's
-        flank = np.minimum(pb, pa)
-        drop |= ~st & (b_in | a_in) & (p < WEAK_GAP_FRACTION * flank)
+    p = np.zeros(0) if peak is None else np.asarray(peak, np.float64)[order]
+    drop = _weak_drops(segment[order], strong[order], p, tail, int(weak_length))
     out = segment.copy()
     out[order[drop]] = -1
     return drop_short(out, min_length)
+
+
+@njit(cache=True)
+def _weak_drops(seg, strong, peak, tail, weak_length):
+    """:func:`settle_weak`'s drops along the points sorted by segment and position (``seg``,
+    ``strong`` (K,); ``peak`` (K,) float64 or (0,) for none): (K,) bool. One pass per
+    segment: its first and last strong points; the weak runs before the first and after the
+    last shorter than ``tail``; a segment without strong points shorter than
+    ``weak_length``; with peaks, the weak points below :data:`WEAK_GAP_FRACTION` of the
+    strong ones next to them (the lower of the two between strong ones)."""
+    n = seg.size
+    drop = np.zeros(n, np.bool_)
+    nxt = np.empty(n, np.int64)
+    lo = 0
+    while lo < n:
+        hi = lo + 1
+        while hi < n and seg[hi] == seg[lo]:
+            hi += 1
+        first = -1
+        last = -1
+        for q in range(lo, hi):
+            if strong[q]:
+                if first < 0:
+                    first = q
+                last = q
+        if last < 0:
+            if hi - lo < weak_length:
+                drop[lo:hi] = True
+            lo = hi
+            continue
+        if first - lo < tail:
+            drop[lo:first] = True
+        if hi - 1 - last < tail:
+            drop[last + 1 : hi] = True
+        if peak.size:
+            after = -1
+            for q in range(hi - 1, lo - 1, -1):  # the next strong point at or after each
+                if strong[q]:
+                    after = q
+                nxt[q] = after
+            before = -1
+            for q in range(lo, hi):
+                if strong[q]:
+                    before = q
+                    continue
+                pb = peak[before] if before >= 0 else np.inf
+                pa = peak[nxt[q]] if nxt[q] >= 0 else np.inf
+                flank = np.nan if pb != pb or pa != pa else min(pb, pa)
+                if peak[q] < WEAK_GAP_FRACTION * flank:
+                    drop[q] = True
+        lo = hi
+    return drop
 
 
 def link_weak(
