@@ -39,9 +39,11 @@ read from the data's flat tops (:func:`~multislit.stripes.separation.clip_level`
 checker corners, texture and JPEG blocks go.
 
 Pixel convention: (u, v), u right (column), v down (row), (0, 0) the centre of the top-left
-pixel. Whole-image passes are OpenCV or NumPy; the loops NumPy cannot vectorise (the dots'
-refill and the stripe slope it needs, the opening along leaning stripes, the row maxima, the
-linking) are compiled with Numba (:func:`compile_kernels`).
+pixel. Whole-image passes are OpenCV or NumPy, or compiled where one pass replaces several
+whole-image temporaries (a float image's dot mask, the refinement's structure tensor
+products); the loops NumPy cannot vectorise (the dots' refill and the stripe slope it needs,
+the opening along leaning stripes, the row maxima, the linking) are compiled with Numba
+(:func:`compile_kernels`).
 """
 
 import numpy as np

@@ -11,6 +11,7 @@ from numba import njit
 from numba.cpython.unsafe.numbers import trailing_zeros
 from numpy.typing import ArrayLike, NDArray
 
+from multislit.stripes.chains import lex_order
 from multislit.stripes.response import lean_slopes, ridge_response, slopes_at, wide_centres
 from multislit.stripes.separation import mask_runs, quantisation_step
 from multislit.stripes.sizes import FWHM_PER_SIGMA, MIN_RIDGE_CONTRAST, ridge_contrast
@@ -605,7 +606,7 @@ def _centres(
         reach = np.concatenate([reach, sreach[keep]])
         strong = np.concatenate([strong, np.ones(int(keep.sum()), bool)])
         lean = np.concatenate([lean, np.zeros(int(keep.sum()))])
-        order = np.lexsort((u, v))
+        order = lex_order(u, v)
         u, v, b, width, reach = u[order], v[order], b[order], width[order], reach[order]
         strong, lean = strong[order], lean[order]
     # one stripe, one centre: a dot or speckle on a stripe's flank can make a second local

@@ -17,6 +17,37 @@ I64 = NDArray[np.int64]
 DEFAULT_MIN_LENGTH = 10
 
 
+def lex_order(minor: ArrayLike, major: ArrayLike) -> NDArray[np.intp]:
+    """``np.lexsort((minor, major))``: the stable order by ``major``, then ``minor``.
+
+    One stable sort of the key ``major * span + minor`` (``span`` wider than ``minor``'s
+    range), which on points that come nearly in order (the centres row by row, a few others
+    after them) is a pass or two, where lexsort sorts each float key in full. Where two
+    different points share a key (``minor`` closer than the key's rounding), lexsort itself.
+
+    Parameters
+    ----------
+    minor : (K,) float, finite
+    major : (K,) float, finite whole numbers (rows, columns)
+
+    Returns
+    -------
+    (K,) intp, the order
+    """
+    mi = np.asarray(minor, np.float64)
+    ma = np.asarray(major, np.float64)
+    if mi.size < 2:
+        return np.arange(mi.size, dtype=np.intp)
+    lo = float(mi.min())
+    span = float(mi.max()) - lo + 1.0
+    key = (ma - float(ma.min())) * span + (mi - lo)
+    order = np.argsort(key, kind="stable")
+    k, m = key[order], mi[order]
+    if bool(np.all((k[1:] > k[:-1]) | (m[1:] == m[:-1]))):
+        return order
+    return np.lexsort((mi, ma))
+
+
 def link_segments(
     u: ArrayLike,
     v: ArrayLike,
@@ -73,7 +104,7 @@ def link_segments(
     ):
         order = np.arange(n)  # already sorted by (row, u), as the centres come
     else:
-        order = np.lexsort((uu, rows))
+        order = lex_order(uu, rows)
     us = uu[order] - uu.min()
     rs = rows[order] - rows.min()
     max_g = int(max_gap) + 1
@@ -106,18 +137,21 @@ def _first_neighbour(key, lean, span, max_du, max_g, sign):
     px of its column plus ``sign * lean * g`` (``lean`` (K,) px per row) in the first row
     g = 1 .. ``max_g`` away (``sign`` +1 below, -1 above) that has any, -1 if none, -2 if
     ambiguous. The windows move along the sorted key (back a little where the lean changes),
-    so two pointers per g replace the binary searches (the same comparisons)."""
+    so two pointers per g replace the binary searches (the same comparisons); a point's rows
+    are searched nearest first, and no further than the first with a candidate (a pointer
+    left behind catches up when its row is searched again)."""
     n = key.size
     found = np.full(n, -1, np.int64)
-    for g in range(1, max_g + 1):
-        tol = max_du * g
-        shift = float(sign * g) * span
-        lo = 0
-        hi = 0
-        for i in range(n):
-            centre = key[i] + shift + sign * g * lean[i]
+    los = np.zeros(max_g + 1, np.int64)
+    his = np.zeros(max_g + 1, np.int64)
+    for i in range(n):
+        for g in range(1, max_g + 1):
+            tol = max_du * g
+            centre = key[i] + float(sign * g) * span + sign * g * lean[i]
             a = centre - tol
             b = centre + tol
+            lo = los[g]
+            hi = his[g]
             while lo > 0 and key[lo - 1] >= a:
                 lo -= 1
             while lo < n and key[lo] < a:  # searchsorted(key, a, "left")
@@ -128,8 +162,11 @@ def _first_neighbour(key, lean, span, max_du, max_g, sign):
                 hi -= 1
             while hi < n and key[hi] <= b:  # searchsorted(key, b, "right")
                 hi += 1
-            if found[i] == -1 and hi > lo:
+            los[g] = lo
+            his[g] = hi
+            if hi > lo:
                 found[i] = lo if hi - lo == 1 else -2
+                break
     return found
 
 
@@ -224,38 +261,66 @@ def settle_weak(
     if lk.size == 0:
         return segment
     order = lk[np.lexsort((along[lk], segment[lk]))]
-    s = segment[order]
-    bounds = np.flatnonzero(np.r_[True, s[1:] != s[:-1], True])
-    lo, hi = bounds[:-1], bounds[1:]
-    n = hi - lo
-    pos = np.arange(order.size)
-    st = strong[order]
-    first = np.minimum.reduceat(np.where(st, pos, order.size), lo)
-    last = np.maximum.reduceat(np.where(st, pos, -1), lo)
-    has = last >= 0
     if weak_length is None:
         weak_length = WEAK_LENGTH_FACTOR * int(min_length)
     tail = WEAK_TAIL_FACTOR * int(min_length)
-    cut_lead = has & (first - lo < tail)
-    cut_trail = has & (hi - 1 - last < tail)
-    k = np.repeat(np.arange(lo.size), n)
-    drop = (cut_lead[k] & (pos < first[k])) | (cut_trail[k] & (pos > last[k]))
-    drop |= ~has[k] & (n[k] < weak_length)
-    if peak is not None:
-        p = np.asarray(peak, np.float64)[order]
-        # the strong centres before and after each point in its segment
-        before = np.maximum.accumulate(np.where(st, pos, -1))
-        after = np.minimum.accumulate(np.where(st, pos, order.size)[::-1])[::-1]
-        b_in, a_in = before >= lo[k], after < hi[k]
-        pb = np.where(b_in, p[np.maximum(before, 0)], np.inf)
-        pa = np.where(a_in, p[np.minimum(after, order.size - 1)], np.inf)
-        # between strong centres the lower of the two; beyond the last (or before the first)
-        # strong one, that one's
-        flank = np.minimum(pb, pa)
-        drop |= ~st & (b_in | a_in) & (p < WEAK_GAP_FRACTION * flank)
+    p = np.zeros(0) if peak is None else np.asarray(peak, np.float64)[order]
+    drop = _weak_drops(segment[order], strong[order], p, tail, int(weak_length))
     out = segment.copy()
     out[order[drop]] = -1
     return drop_short(out, min_length)
+
+
+@njit(cache=True)
+def _weak_drops(seg, strong, peak, tail, weak_length):
+    """:func:`settle_weak`'s drops along the points sorted by segment and position (``seg``,
+    ``strong`` (K,); ``peak`` (K,) float64 or (0,) for none): (K,) bool. One pass per
+    segment: its first and last strong points; the weak runs before the first and after the
+    last shorter than ``tail``; a segment without strong points shorter than
+    ``weak_length``; with peaks, the weak points below :data:`WEAK_GAP_FRACTION` of the
+    strong ones next to them (the lower of the two between strong ones)."""
+    n = seg.size
+    drop = np.zeros(n, np.bool_)
+    nxt = np.empty(n, np.int64)
+    lo = 0
+    while lo < n:
+        hi = lo + 1
+        while hi < n and seg[hi] == seg[lo]:
+            hi += 1
+        first = -1
+        last = -1
+        for q in range(lo, hi):
+            if strong[q]:
+                if first < 0:
+                    first = q
+                last = q
+        if last < 0:
+            if hi - lo < weak_length:
+                drop[lo:hi] = True
+            lo = hi
+            continue
+        if first - lo < tail:
+            drop[lo:first] = True
+        if hi - 1 - last < tail:
+            drop[last + 1 : hi] = True
+        if peak.size:
+            after = -1
+            for q in range(hi - 1, lo - 1, -1):  # the next strong point at or after each
+                if strong[q]:
+                    after = q
+                nxt[q] = after
+            before = -1
+            for q in range(lo, hi):
+                if strong[q]:
+                    before = q
+                    continue
+                pb = peak[before] if before >= 0 else np.inf
+                pa = peak[nxt[q]] if nxt[q] >= 0 else np.inf
+                flank = np.nan if pb != pb or pa != pa else min(pb, pa)
+                if peak[q] < WEAK_GAP_FRACTION * flank:
+                    drop[q] = True
+        lo = hi
+    return drop
 
 
 def link_weak(

@@ -31,6 +31,8 @@ from multislit.stripes.separation import (
     PHOTO_OPENING_WIDTHS,
     background_validated,
     dot_size_validated,
+    noise_from_difference,
+    saturation_level_of,
     separate_validated,
 )
 from multislit.stripes.sizes import (
@@ -261,15 +263,18 @@ def extract_slits(
                 img, estimate_noise(img), math.nan, ds if ds is not None else math.nan
             )
         sw = est
+    # the whole image's noise and saturation level, read once for every step that needs them
+    noise0 = noise_from_difference(img)
+    level = saturation_level_of(img) if saturation_level is None else saturation_level
     if reject_texture:
         bg = background_validated(img, sw, background, PHOTO_OPENING_WIDTHS)
     else:
-        bg = background_validated(img, sw, background)
+        bg = background_validated(img, sw, background, noise=noise0)
     if ds is None:
         # the dots' size on the image less its row median (the photo mode's: less its opening)
         ds = dot_size_validated(img, sw, bg if reject_texture or background == "median" else None)
     hp, slits, sat, noise = separate_validated(
-        img, sw, ds, saturation_level, background, bg, keep_ends=not reject_texture
+        img, sw, ds, level, background, bg, keep_ends=not reject_texture, noise=noise0
     )
     dots = remove_streaks(cv2.subtract(hp, slits), opening_length(ds)).astype(
         np.float32, copy=False
@@ -313,7 +318,7 @@ def extract_slits(
         thr = k_sigma * noise
         lk = segment >= 0
         rows = (centres.v[lk], centres.u[lk])  # the row pass's stripes, in the columns' frame
-        cols = column_pass(img, sw, ds, thr, method, saturation_level, taps, link, rows)
+        cols = column_pass(img, sw, ds, thr, method, level, taps, link, rows)
         merged = merge_passes(
             centres,
             segment,

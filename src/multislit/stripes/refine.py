@@ -20,6 +20,7 @@ from multislit.stripes.separation import (
 from multislit.stripes.sizes import FWHM_PER_SIGMA, median_stride, opening_length
 from multislit.stripes.slope import (
     LEAN_DECIMATION,
+    _sobel_row,
     reflect101,
     slope_sigma,
     stripe_slope,
@@ -279,15 +280,49 @@ def _highpass_and_tensor(img: NDArray, sw: float, R: int, length: int) -> tuple[
         hp = cv2.subtract(img, hp, dst=hp, dtype=cv2.CV_32F)
     else:
         hp = np.subtract(img, hp, out=hp)
-    # the products transposed (W, H): the slope's Gaussian runs along their rows
-    hpt = cv2.transpose(hp)
-    gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, ksize=3)
-    gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, ksize=3)
     sig = slope_sigma(length)
     taps = round(sig * 8 + 1) | 1  # cv2.GaussianBlur's kernel size for float data
     g = cv2.getGaussianKernel(taps, sig, cv2.CV_32F).ravel()
-    pvt = cv2.multiply(gu, gv, dst=gv)
-    return hp, cv2.multiply(gu, gu, dst=gu), pvt, g
+    # the products transposed (W, H): the slope's Gaussian runs along their rows
+    h, w = hp.shape
+    if h < 3 or w < 3:  # too small for the compiled pass's row views
+        hpt = cv2.transpose(hp)
+        gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, ksize=3)
+        gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, ksize=3)
+        pvt = cv2.multiply(gu, gv, dst=gv)
+        return hp, cv2.multiply(gu, gu, dst=gu), pvt, g
+    put = np.empty((w, h), np.float32)
+    pvt = np.empty((w, h), np.float32)
+    _tensor_products_t(hp, put, pvt)
+    return hp, put, pvt, g
+
+
+#: Rows of the highpass per block of :func:`_tensor_products_t` (16 float32: one cache line
+#: of each transposed row written at a time).
+_PRODUCT_ROWS = 16
+
+
+@njit(cache=True)
+def _tensor_products_t(hp, put, pvt):
+    """The structure tensor products gu^2 and gu gv of ``hp`` (H, W) float32, transposed:
+    ``put``, ``pvt`` (W, H) float32, from cv2.Sobel's 3x3 derivatives
+    (cv2.BORDER_REFLECT_101; H, W >= 3). The derivatives of a block of rows at a time, then
+    written column by column."""
+    h, w = hp.shape
+    nb = _PRODUCT_ROWS
+    gu = np.empty((nb, w), np.float32)
+    gv = np.empty((nb, w), np.float32)
+    for r0 in range(0, h, nb):
+        n = min(nb, h - r0)
+        for k in range(n):
+            _sobel_row(hp, r0 + k, gu[k], gv[k])
+        for c in range(w):
+            ou = put[c, r0 : r0 + n]
+            ov = pvt[c, r0 : r0 + n]
+            for k in range(n):
+                a = gu[k, c]
+                ou[k] = a * a
+                ov[k] = a * gv[k, c]
 
 
 def _check_points(
@@ -353,8 +388,9 @@ def _check_options(
 
 # --------------------------------------------------------------------------- compiled kernels
 # The refinement reads the slit image only in the points' Steger windows. The highpass, the
-# structure tensor's products, the vertical opening, the stripes' lean and the dot mask are
-# whole-image passes (OpenCV); the opening along leaning stripes is made only in the cells
+# vertical opening and the stripes' lean are whole-image passes (OpenCV), the structure
+# tensor's products (transposed, :func:`_tensor_products_t`) and the dot mask whole-image
+# compiled passes; the opening along leaning stripes is made only in the cells
 # the dot mask is read at (:func:`_opening_cells`); the dot
 # refill (a run of dot pixels at a time, only in the rows the windows read) and the stripe
 # slope it needs (the tensor's Gaussian: its pass along u column by column, for the blocks of

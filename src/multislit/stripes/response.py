@@ -231,7 +231,8 @@ def _shear_cells(rows, out, slope, d, taps):
     the image's remainder) is not 0, ``out`` (H, W) float32 is ``rows`` (H, W) float32
     summed with the weights ``taps`` (odd) along the line of that slope through each pixel
     (rows reflected at the border, columns clamped, read by linear interpolation along the
-    row); in place. Within a cell each tap reads its row at one sub-pixel offset."""
+    row); in place. Within a cell each tap reads its row at one sub-pixel offset, worked out
+    once for the cell's rows; each pixel's sum runs over the taps in order."""
     h, w = rows.shape
     ch, cw = slope.shape
     half = taps.size // 2
@@ -248,13 +249,16 @@ def _shear_cells(rows, out, slope, d, taps):
                 o_row = out[r]
                 for c in range(c0, c1):
                     o_row[c] = 0.0
-                for k in range(-half, half + 1):
-                    x = t * np.float32(k)
-                    o = int(np.floor(x))
-                    f = np.float32(x - o)
-                    g = np.float32(taps[k + half])
+            for k in range(-half, half + 1):
+                x = t * np.float32(k)
+                o = int(np.floor(x))
+                f = np.float32(x - o)
+                g = np.float32(taps[k + half])
+                inside = c0 + o >= 0 and c1 + o < w
+                for r in range(r0, r1):
+                    o_row = out[r]
                     src = rows[reflect(r + k, h)]
-                    if c0 + o >= 0 and c1 + o < w:
+                    if inside:
                         for c in range(c0, c1):
                             a = src[c + o]
                             o_row[c] += g * (a + (src[c + o + 1] - a) * f)

@@ -50,10 +50,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from multislit.stripes.centres import StripeCentres, find_ridge_centres_validated, row_maxima
-from multislit.stripes.chains import drop_short, link_segments, link_weak
+from multislit.stripes.chains import drop_short, lex_order, link_segments, link_weak
 from multislit.stripes.openings import remove_streaks
 from multislit.stripes.response import ridge_threshold
 from multislit.stripes.separation import (
@@ -261,7 +262,6 @@ def column_pass(
         level = saturation_level_of(img)
     length = opening_length(dot_size_px)
     margin = _TILE + 2 * length
-    region = tiles.repeat(_TILE, axis=0).repeat(_TILE, axis=1)[:h, :w]
     parts, strong, lean = [], [], []
     for k, (r0, r1, c0, c1) in enumerate(boxes, start=1):
         # rows a multiple of 8: the transposed crop's rows are read 8 px at a time
@@ -290,14 +290,25 @@ def column_pass(
         strong.append(firm[inside])
         lean.append(slope[inside])
         d = cv2.transpose(remove_streaks(cv2.subtract(hp, slits), length).astype(np.float32))
-        own = region[a0:a1, b0:b1] == k
+        own = _tile_mask(tiles, k, a0, a1, b0, b1)
         np.copyto(dots[a0:a1, b0:b1], d, where=own)
     centres = StripeCentres(*(np.concatenate(x) for x in zip(*parts, strict=True)))
-    order = np.lexsort((centres.v, centres.u))
+    order = lex_order(centres.v, centres.u)
     centres = StripeCentres(*(x[order] for x in centres))
     firm, slope = np.concatenate(strong)[order], np.concatenate(lean)[order]
     segment = link_columns(centres, firm, slope, link, barrier)
     return ColumnCentres(centres, segment, dots, len(boxes), firm, slope)
+
+
+def _tile_mask(
+    tiles: NDArray[np.int32], k: int, a0: int, a1: int, b0: int, b1: int
+) -> NDArray[np.bool_]:
+    """(a1 - a0, b1 - b0) bool: the pixels of rows ``a0`` .. ``a1`` - 1 and columns ``b0`` ..
+    ``b1`` - 1 whose tile of :data:`_TILE` px is in region ``k`` of ``tiles``."""
+    t0, u0 = a0 // _TILE, b0 // _TILE
+    sub = tiles[t0 : -(-a1 // _TILE), u0 : -(-b1 // _TILE)] == k
+    big = sub.repeat(_TILE, axis=0).repeat(_TILE, axis=1)
+    return big[a0 - t0 * _TILE : a1 - t0 * _TILE, b0 - u0 * _TILE : b1 - u0 * _TILE]
 
 
 def _widen8(a0: int, a1: int, n: int) -> tuple[int, int]:
@@ -524,27 +535,58 @@ def _local_slopes(a: F64, b: F64, segment: I64, half: int) -> F64:
     if lk.size == 0:
         return out
     lk = lk[np.lexsort((b[lk], segment[lk]))]
-    s = segment[lk]
-    bounds = np.flatnonzero(np.r_[True, s[1:] != s[:-1], True])
-    first = np.repeat(bounds[:-1], np.diff(bounds))
-    last = np.repeat(bounds[1:] - 1, np.diff(bounds))
-    i = np.arange(lk.size)
-    lo = np.maximum(i - half, first)
-    hi = np.minimum(i + half, last) + 1
-    bb = b[lk] - b[lk][first]  # from each segment's start: small numbers, exact sums
-    aa = a[lk] - a[lk][first]
+    out[lk] = _window_slopes(
+        np.ascontiguousarray(a[lk], np.float64),
+        np.ascontiguousarray(b[lk], np.float64),
+        segment[lk].astype(np.int64),
+        int(half),
+    )
+    return out
 
-    def window_sum(x: F64) -> F64:
-        c = np.r_[0.0, np.cumsum(x)]
-        return c[hi] - c[lo]
 
-    n = (hi - lo).astype(np.float64)
-    sb, sa = window_sum(bb), window_sum(aa)
-    sbb, sab = window_sum(bb * bb), window_sum(aa * bb)
-    den = n * sbb - sb * sb
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(den > 1e-9 * np.maximum(n * sbb, 1.0), (n * sab - sb * sa) / den, np.nan)
-    out[lk] = slope
+@njit(cache=True)
+def _window_slopes(a, b, seg, half):
+    """:func:`_local_slopes` of the points sorted by segment and ``b`` (``a``, ``b``, ``seg``
+    (K,)): (K,) float64. The window sums are differences of running sums over all the points
+    (each segment's a and b taken from its first point: small numbers, exact sums), added in
+    order as np.cumsum adds."""
+    n = a.size
+    first = np.empty(n, np.int64)
+    last = np.empty(n, np.int64)
+    lo = 0
+    while lo < n:
+        hi = lo + 1
+        while hi < n and seg[hi] == seg[lo]:
+            hi += 1
+        for q in range(lo, hi):
+            first[q] = lo
+            last[q] = hi - 1
+        lo = hi
+    ca = np.zeros(n + 1)
+    cb = np.zeros(n + 1)
+    cbb = np.zeros(n + 1)
+    cab = np.zeros(n + 1)
+    for q in range(n):
+        bb = b[q] - b[first[q]]
+        aa = a[q] - a[first[q]]
+        ca[q + 1] = ca[q] + aa
+        cb[q + 1] = cb[q] + bb
+        cbb[q + 1] = cbb[q] + bb * bb
+        cab[q + 1] = cab[q] + aa * bb
+    out = np.empty(n)
+    for q in range(n):
+        w0 = max(q - half, first[q])
+        w1 = min(q + half, last[q]) + 1
+        m = float(w1 - w0)
+        sb = cb[w1] - cb[w0]
+        sa = ca[w1] - ca[w0]
+        sbb = cbb[w1] - cbb[w0]
+        sab = cab[w1] - cab[w0]
+        den = m * sbb - sb * sb
+        if den > 1e-9 * max(m * sbb, 1.0):
+            out[q] = (m * sab - sb * sa) / den
+        else:
+            out[q] = np.nan
     return out
 
 
@@ -717,7 +759,7 @@ def merge_passes(
         new_id = np.full(n, -1, np.int64)
         new_id[ids[np.argsort(mean_u[ids], kind="stable")]] = np.arange(ids.size)
         seg = np.where(lk, new_id[np.maximum(seg, 0)], -1)
-    order = np.lexsort((u, np.rint(v)))
+    order = lex_order(u, np.rint(v))
     return MergedCentres(
         StripeCentres(u[order], v[order], peak[order], width[order]),
         seg[order],

@@ -437,16 +437,42 @@ def _blend(above, below, frac, rint, here, floor, t, n1, end_rows, whole):
     return min(val, float(here))
 
 
+#: A dot pixel lies above the opening by more than the dot threshold plus this fraction of
+#: the opening (:func:`dot_mask`).
+_DOT_OPENING_FRACTION = 0.05
+
+
 def dot_mask(hp: NDArray, opened: NDArray, tau: float) -> NDArray[np.uint8]:
     """(H, W) uint8, 255 on the dot pixels :func:`fill_dots` refills: where ``opened`` lies
-    below ``hp`` by more than ``tau`` plus 5 % of itself, widened by 1 px for the dots' tails."""
-    diff = cv2.subtract(hp, opened)
+    below ``hp`` by more than ``tau`` plus 5 % of itself, widened by 1 px for the dots' tails.
+
+    Float32 images in one compiled pass (:func:`_above_opening`, no float temporaries), the
+    integer ones by OpenCV in their own type (saturating, as the comparison of integers needs).
+    """
     # + 5 % of the opening: the opening flattens the top of a tilted stripe by
     # A (1 - exp(-(s (L - 1) / 2)^2 / (2 sigma^2))), ~2.5 % of its peak A at slope s = 0.1; that
     # is not a dot, and flagging whole stripe tops would make runs too long to interpolate
-    thr = cv2.addWeighted(opened, 0.05, opened, 0.0, tau)
-    mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=diff if diff.dtype == np.uint8 else None)
+    if hp.dtype == np.float32 and opened.dtype == np.float32:
+        mask = np.empty(hp.shape, np.uint8)
+        _above_opening(hp, opened, np.float32(_DOT_OPENING_FRACTION), np.float32(tau), mask)
+    else:
+        diff = cv2.subtract(hp, opened)
+        thr = cv2.addWeighted(opened, _DOT_OPENING_FRACTION, opened, 0.0, tau)
+        mask = cv2.compare(diff, thr, cv2.CMP_GT, dst=diff if diff.dtype == np.uint8 else None)
     return cv2.dilate(mask, np.ones((3, 3), np.uint8))
+
+
+@njit(cache=True)
+def _above_opening(hp, opened, frac, tau, mask):
+    """``mask`` (H, W) uint8: 255 where ``hp`` - ``opened`` > ``frac`` ``opened`` + ``tau``
+    (float32 arithmetic; ``hp``, ``opened`` (H, W) float32), else 0."""
+    h, w = hp.shape
+    for r in range(h):
+        x = hp[r]
+        o = opened[r]
+        m = mask[r]
+        for c in range(w):
+            m[c] = 255 if x[c] - o[c] > o[c] * frac + tau else 0
 
 
 def _fill(
@@ -573,7 +599,9 @@ def row_opening_background(
     return cv2.morphologyEx(image, cv2.MORPH_OPEN, np.ones((1, length), np.uint8))
 
 
-def lifted_opening_background(image: NDArray, stripe_width_px: float) -> NDArray:
+def lifted_opening_background(
+    image: NDArray, stripe_width_px: float, noise: float | None = None
+) -> NDArray:
     """The row opening (:func:`row_opening_background`) raised to the background's level,
     same dtype as ``image`` (H, W).
 
@@ -582,11 +610,14 @@ def lifted_opening_background(image: NDArray, stripe_width_px: float) -> NDArray
     exceed on noise and on the rounded top of an albedo step. It is raised by the median of
     ``image`` less it over the pixels less than :data:`LIFT_SIGMAS` noise sigmas above it
     (:func:`noise_from_difference`; every :data:`_LIFT_STRIDE`-th row and column), rounded to
-    the data's step for integer images.
+    the data's step for integer images. ``noise``: :func:`noise_from_difference` of
+    ``image`` if already known.
     """
+    if noise is None:
+        noise = noise_from_difference(image)
     bg = row_opening_background(image, stripe_width_px)
     d = cv2.subtract(image[::_LIFT_STRIDE, ::_LIFT_STRIDE], bg[::_LIFT_STRIDE, ::_LIFT_STRIDE])
-    low = d[d < LIFT_SIGMAS * noise_from_difference(image)]
+    low = d[d < LIFT_SIGMAS * noise]
     lift = float(np.median(low)) if low.size else 0.0
     if np.issubdtype(bg.dtype, np.integer):
         lift = round(lift)
@@ -594,16 +625,20 @@ def lifted_opening_background(image: NDArray, stripe_width_px: float) -> NDArray
 
 
 def background_validated(
-    img: NDArray, stripe_width_px: float, background: str, widths: float | None = None
+    img: NDArray,
+    stripe_width_px: float,
+    background: str,
+    widths: float | None = None,
+    noise: float | None = None,
 ) -> NDArray:
     """The row background of :func:`separate`'s ``background`` method (validated arguments):
-    for ``"opening"`` the lifted opening (:func:`lifted_opening_background`), or with
-    ``widths`` given the plain opening with a line of that many stripe widths (the photo
-    mode's)."""
+    for ``"opening"`` the lifted opening (:func:`lifted_opening_background`; ``noise`` its
+    noise sigma if already known), or with ``widths`` given the plain opening with a line of
+    that many stripe widths (the photo mode's)."""
     if background == "opening":
         if widths is not None:
             return row_opening_background(img, stripe_width_px, widths)
-        return lifted_opening_background(img, stripe_width_px)
+        return lifted_opening_background(img, stripe_width_px, noise)
     return row_median_background(img, median_stride(stripe_width_px))
 
 
@@ -643,10 +678,12 @@ def separate_validated(
     bg: NDArray | None = None,
     lean_decimation: int = LEAN_DECIMATION,
     keep_ends: bool = False,
+    noise: float | None = None,
 ) -> tuple[NDArray, NDArray, NDArray, float]:
     """Core of :func:`separate` on a validated image, native dtype (exact integer arithmetic).
 
-    ``bg``: the row background (:func:`background_validated`) if already made;
+    ``bg``: the row background (:func:`background_validated`) if already made; ``noise``:
+    :func:`noise_from_difference` of ``img`` if already known;
     ``lean_decimation``: the cell (px) of the lean map the opening follows the stripes by
     (:func:`~multislit.stripes.openings.stripe_opening`); ``keep_ends``: the refill keeps the
     stripes' ends (:func:`fill_dots`).
@@ -657,7 +694,8 @@ def separate_validated(
     hp = cv2.subtract(img, bg)  # saturates at 0 for integer images
     if hp.dtype == np.float32:
         np.maximum(hp, 0, out=hp)
-    noise = noise_from_difference(img)
+    if noise is None:
+        noise = noise_from_difference(img)
     length = opening_length(dot_size_px)
     # vertical, and along the stripe where it leans too far for the vertical line
     opened = stripe_opening(hp, length, 3.0 * noise, decimation=lean_decimation)
