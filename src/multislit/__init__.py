@@ -35,6 +35,7 @@ import cv2  # noqa: E402
 import numba  # noqa: E402
 
 from multislit import calibrate, identify, reconstruct, stripes
+from multislit._memory import keep_freed_buffers
 from multislit.calibrate import Calibration, calibrate_capture, write_calibration
 from multislit.errors import MultislitError
 from multislit.identify import capture_reference, prepare_reference
@@ -42,6 +43,11 @@ from multislit.io import Capture, read_ply, write_ply
 from multislit.measure import measure_holes
 from multislit.reconstruct import ScanOptions, scan_capture, scan_image
 from multislit.sim import RigSpec, simulate_capture
+
+# A frame's image-sized buffers are kept in the heap when freed, so the next frame reuses them
+# rather than faulting their pages in again (:mod:`multislit._memory`; a user's own
+# MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_ stands).
+keep_freed_buffers()
 
 __all__ = [
     "Calibration",
