@@ -215,7 +215,8 @@ def dot_grid(
     cy = np.clip((dots.v / cell).astype(np.intp), 0, ny - 1)
     key = cy * nx + cx
     order = np.argsort(key, kind="stable").astype(np.intp)
-    start = np.searchsorted(key[order], np.arange(nx * ny + 1)).astype(np.intp)
+    start = np.zeros(nx * ny + 1, np.intp)
+    np.cumsum(np.bincount(key, minlength=nx * ny), out=start[1:])
     return order, start, nx, ny
 
 
@@ -264,12 +265,23 @@ class FrameDots:
     @cached_property
     def _kernel_args(self) -> tuple[tuple, tuple]:
         levels, table, lo, scale = _llr_table()
-        q = np.searchsorted(0.5 * (levels[1:] + levels[:-1]), self.p_false).astype(np.uint8)
+        q = _level_of(self.p_false, levels)
         chance = (self.near_zone, q, np.log(levels / (1.0 - levels)), table, lo, scale)
         return self.response.kernel_args(), chance
 
 
 _TABLE: dict = {}
+
+
+def _level_of(p: F32, levels: F64) -> NDArray[np.uint8]:
+    """The nearest of the geometrically spaced ``levels`` (Q,) to each chance ``p`` (within
+    their range), by the midpoints between them: ``np.searchsorted(midpoints, p)``, from
+    the level below found by the logarithm."""
+    mids = 0.5 * (levels[1:] + levels[:-1])
+    step = math.log(levels[1] / levels[0])
+    below = np.floor(np.log(p / np.float32(levels[0])) / np.float32(step)).astype(np.intp)
+    below = np.clip(below, 0, len(mids) - 1)
+    return (below + (mids[below] < p)).astype(np.uint8)
 
 
 def _llr_table() -> tuple[F64, F64, float, float]:

@@ -21,6 +21,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from multislit.stripes.chains import lex_order
+
 I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
 
@@ -140,7 +142,7 @@ def gaps(u: F64, v: F64, piece: I64, max_gap_px: float, min_rows: int) -> Gaps:
     """
     lk = np.flatnonzero(piece >= 0)
     r = np.rint(v[lk]).astype(np.int64)
-    o = np.lexsort((u[lk], r))
+    o = lex_order(u[lk], r)
     lk, r = lk[o], r[o]
     # the pairs of neighbouring points of two pieces in a row (a piece of a stripe leaning
     # towards the horizontal holds a run of points in a row: its inner pairs are no gap)
