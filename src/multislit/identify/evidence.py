@@ -518,49 +518,81 @@ def _project_many(x, y, z, n, cam, R, t, dist, u, v):
         u[i], v[i] = _project(x[i], y[i], z[i], cam, R, t, dist)
 
 
+#: Rows of the curves' points (:func:`_curve_points`): the cosine and sine of the angle across
+#: the slits seen from the dot source, the sine of the angle along them, the range, and the
+#: tangent of the angle across.
+_PTS = 5
+
+
 @njit(cache=True)
-def _curve(C, rays, order, a0, nt, plane, O, F, R, t, cp, sp, ss, rr, idx):
+def _plane_terms(planes, C):
+    """The slit planes (N, 4) as :func:`_curve_points` reads them: their coefficients (4, N)
+    and the numerators ``-(n . C + d)`` (N,) of the lines of sight from the camera centre
+    ``C`` meeting them."""
+    pl = np.ascontiguousarray(planes.T)
+    num = np.empty(planes.shape[0])
+    for k in range(planes.shape[0]):
+        num[k] = -(planes[k, 0] * C[0] + planes[k, 1] * C[1] + planes[k, 2] * C[2] + planes[k, 3])
+    return pl, num
+
+
+@njit(cache=True, error_model="numpy")
+def _curve_points(C, rays, order, a0, nt, pl, num, k0, k1, O, F, R, t, pts, zsum, bad):
     """The stripe points ``order[a0:a0+nt]`` (every :data:`_CURVE_STRIDE`-th and the last)
-    under a slit plane (4,), seen from the dot source: the cosine ``cp`` and sine ``sp`` of
-    their angle across the slits, the sine ``ss`` of their angle along them and their range
+    under the slits ``k0 .. k1 - 1`` (their planes ``pl``, ``num``: :func:`_plane_terms`), seen
+    from the dot source, into ``pts`` (:data:`_PTS`, T, N) per point and slit; the sum of
+    their camera depths into ``zsum`` (N,), and into ``bad`` (N,) whether a line of sight
+    misses a slit's plane or meets it behind the camera or the dot source. The slits are the
+    inner loop, without branches, which the compiler vectorises. Returns the number of curve
+    points."""
+    m = (nt - 1) // _CURVE_STRIDE + 2 if nt > 1 else 1
+    for k in range(k0, k1):
+        zsum[k] = 0.0
+        bad[k] = not np.isfinite(pl[0, k])
+    for i in range(m):
+        p = order[a0 + min(i * _CURVE_STRIDE, nt - 1)]
+        rx, ry, rz = rays[p, 0], rays[p, 1], rays[p, 2]
+        for k in range(k0, k1):
+            den = pl[0, k] * rx + pl[1, k] * ry + pl[2, k] * rz
+            s = num[k] / den
+            X = C[0] + s * rx
+            Y = C[1] + s * ry
+            Z = C[2] + s * rz
+            zsum[k] += R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
+            qx, qy, qz = X - O[0], Y - O[1], Z - O[2]
+            lx = F[0, 0] * qx + F[0, 1] * qy + F[0, 2] * qz
+            ly = F[1, 0] * qx + F[1, 1] * qy + F[1, 2] * qz
+            lz = F[2, 0] * qx + F[2, 1] * qy + F[2, 2] * qz
+            hn = math.sqrt(lx * lx + lz * lz)
+            rn = math.sqrt(hn * hn + ly * ly)
+            bad[k] |= (abs(den) < 1e-12) | (s <= 0) | (lz <= 0.0)
+            pts[0, i, k] = lz / hn
+            pts[1, i, k] = lx / hn
+            pts[2, i, k] = ly / rn
+            pts[3, i, k] = rn
+            pts[4, i, k] = lx / lz
+    return m
+
+
+@njit(cache=True)
+def _curve_of(pts, m, k, zsum, bad, cp, sp, ss, rr, idx):
+    """Slit ``k``'s curve of :func:`_curve_points`: the cosine ``cp`` and sine ``sp`` of its
+    points' angle across the slits, the sine ``ss`` of their angle along them and their range
     ``rr``, with ``idx`` their order along the slits. Returns (ok, mean camera depth, the
     number of curve points, the least and the largest angle across the slits); not ok where a
     line of sight misses the plane or meets it behind the camera."""
-    nx_, ny_, nz_, nd_ = plane[0], plane[1], plane[2], plane[3]
-    if not np.isfinite(nx_):
+    if bad[k]:
         return False, 0.0, 0, 0.0, 0.0
-    num = -(nx_ * C[0] + ny_ * C[1] + nz_ * C[2] + nd_)
-    zsum = 0.0
     tmin = np.inf
     tmax = -np.inf
-    m = (nt - 1) // _CURVE_STRIDE + 2 if nt > 1 else 1
     for i in range(m):
-        p = order[a0 + min(i * _CURVE_STRIDE, nt - 1)]
-        den = nx_ * rays[p, 0] + ny_ * rays[p, 1] + nz_ * rays[p, 2]
-        if abs(den) < 1e-12:
-            return False, 0.0, 0, 0.0, 0.0
-        s = num / den
-        if s <= 0:
-            return False, 0.0, 0, 0.0, 0.0
-        X = C[0] + s * rays[p, 0]
-        Y = C[1] + s * rays[p, 1]
-        Z = C[2] + s * rays[p, 2]
-        zsum += R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
-        qx, qy, qz = X - O[0], Y - O[1], Z - O[2]
-        lx = F[0, 0] * qx + F[0, 1] * qy + F[0, 2] * qz
-        ly = F[1, 0] * qx + F[1, 1] * qy + F[1, 2] * qz
-        lz = F[2, 0] * qx + F[2, 1] * qy + F[2, 2] * qz
-        hn = math.sqrt(lx * lx + lz * lz)
-        rn = math.sqrt(hn * hn + ly * ly)
-        if lz <= 0.0:
-            return False, 0.0, 0, 0.0, 0.0
-        cp[i] = lz / hn
-        sp[i] = lx / hn
-        ss[i] = ly / rn
-        rr[i] = rn
+        cp[i] = pts[0, i, k]
+        sp[i] = pts[1, i, k]
+        ss[i] = pts[2, i, k]
+        rr[i] = pts[3, i, k]
         idx[i] = i
-        tmin = min(tmin, lx / lz)
-        tmax = max(tmax, lx / lz)
+        tmin = min(tmin, pts[4, i, k])
+        tmax = max(tmax, pts[4, i, k])
     for i in range(1, m):  # along the slits (insertion sort: the points come nearly in order)
         j = i
         while j > 0 and ss[idx[j - 1]] > ss[idx[j]]:
@@ -568,7 +600,15 @@ def _curve(C, rays, order, a0, nt, plane, O, F, R, t, cp, sp, ss, rr, idx):
             idx[j - 1] = idx[j]
             idx[j] = tmp
             j -= 1
-    return True, zsum / m, m, math.atan(tmin), math.atan(tmax)
+    return True, zsum[k] / m, m, math.atan(tmin), math.atan(tmax)
+
+
+@njit(cache=True)
+def _curve(C, rays, order, a0, nt, pl, num, k, O, F, R, t, pts, zsum, bad, cp, sp, ss, rr, idx):
+    """One slit's curve (:func:`_curve_points` of the slit ``k`` alone, then
+    :func:`_curve_of`)."""
+    m = _curve_points(C, rays, order, a0, nt, pl, num, k, k + 1, O, F, R, t, pts, zsum, bad)
+    return _curve_of(pts, m, k, zsum, bad, cp, sp, ss, rr, idx)
 
 
 @njit(cache=True, inline="always")
@@ -625,14 +665,6 @@ def _scratch(m):
         np.empty(m),
         np.empty(m),
     )
-
-
-@njit(cache=True)
-def _grown(a, n):
-    """A 1-D array of twice the length of ``a`` with ``a[:n]`` at its start."""
-    out = np.empty(2 * a.shape[0], a.dtype)
-    out[:n] = a[:n]
-    return out
 
 
 @njit(cache=True)
@@ -856,6 +888,10 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
     ss = np.empty(maxt)
     rr = np.empty(maxt)
     idx = np.empty(maxt, np.int64)
+    pl, num = _plane_terms(planes, C)
+    pts = np.empty((_PTS, maxt, nslit))
+    zsum = np.empty(nslit)
+    bad = np.empty(nslit, np.bool_)
     score = np.zeros((2, ns))
     count = np.zeros((2, ns), np.int64)
     quick = np.empty(nslit)
@@ -875,14 +911,13 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
         if nt <= 0:
             continue
         n = 0
+        mc = _curve_points(C, rays, order, a0, nt, pl, num, 0, nslit, O, F, R, t, pts, zsum, bad)
         for k in range(nslit):  # every slit's dots at the slope 0
             quick[k] = -np.inf
             rec_start[k] = rec_end[k] = -1
             if not hyp[wi, k] or not np.isfinite(hb[k]):
                 continue
-            ok, zmean, nc, phmin, phmax = _curve(
-                C, rays, order, a0, nt, planes[k], O, F, R, t, cp, sp, ss, rr, idx
-            )
+            ok, zmean, nc, phmin, phmax = _curve_of(pts, mc, k, zsum, bad, cp, sp, ss, rr, idx)
             if not ok or zmean < zmin or zmean > zmax:
                 continue
             span[wi, k, 0] = ss[idx[0]]
@@ -1046,6 +1081,10 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
     ssb = np.empty(maxt)
     rrb = np.empty(maxt)
     ib = np.empty(maxt, np.int64)
+    pl, num = _plane_terms(planes, C)
+    cpts = np.empty((_PTS, maxt, nslit))
+    zsum = np.empty(nslit)
+    bad = np.empty(nslit, np.bool_)
     gvals = _slope_grid(G, steps)
     ns = len(gvals)
     score = np.zeros((2, ns))
@@ -1085,12 +1124,10 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
             graze[p, k] = max(g1, g2)
             if not pairs[p, k]:
                 continue
-            oka, _, na, pha0, pha1 = _curve(
-                C, rays, a_order, a0, na0, planes[k], O, F, R, t, cpa, spa, ssa, rra, ia
-            )
-            okb, _, nbp, phb0, phb1 = _curve(
-                C, rays, b_order, c0, nb0, planes[k + 1], O, F, R, t, cpb, spb, ssb, rrb, ib
-            )
+            oka, _, na, pha0, pha1 = _curve(C, rays, a_order, a0, na0, pl, num, k, O, F, R, t,
+                                            cpts, zsum, bad, cpa, spa, ssa, rra, ia)  # fmt: skip
+            okb, _, nbp, phb0, phb1 = _curve(C, rays, b_order, c0, nb0, pl, num, k + 1, O, F, R,
+                                             t, cpts, zsum, bad, cpb, spb, ssb, rrb, ib)  # fmt: skip
             if not (oka and okb):
                 continue
             ssmin = max(ssa[ia[0]], ssb[ib[0]])
@@ -1264,6 +1301,10 @@ def _match_kernel(rays, order, win_start, windows, labels, slopes, rig, dots, ou
     ss = np.empty(maxt)
     rr = np.empty(maxt)
     idx = np.empty(maxt, np.int64)
+    pl, num = _plane_terms(planes, C)
+    pts = np.empty((_PTS, maxt, planes.shape[0]))
+    zsum = np.empty(planes.shape[0])
+    bad = np.empty(planes.shape[0], np.bool_)
     n = 0
     for i in range(len(windows)):
         wi = windows[i]
@@ -1271,7 +1312,7 @@ def _match_kernel(rays, order, win_start, windows, labels, slopes, rig, dots, ou
         a0 = win_start[wi]
         nt = win_start[wi + 1] - a0
         ok, _, nc, phmin, phmax = _curve(
-            C, rays, order, a0, nt, planes[k], O, F, R, t, cp, sp, ss, rr, idx
+            C, rays, order, a0, nt, pl, num, k, O, F, R, t, pts, zsum, bad, cp, sp, ss, rr, idx
         )
         if not ok:
             continue
