@@ -42,7 +42,11 @@ _WORK = textwrap.dedent(
 def _faults(which: str, **env: str) -> tuple[int, int]:
     """(whether the setting was made (-1: not asked), page faults) of the work in a new
     process."""
-    full = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    full = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith("MALLOC_") and k != "MULTISLIT_ALLOCATOR"
+    }
     full.update(env)
     out = subprocess.run(
         [sys.executable, "-c", _WORK, which],
@@ -67,3 +71,10 @@ def test_a_users_own_allocator_setting_stands():
     made, faults = _faults("multislit", MALLOC_MMAP_THRESHOLD_="131072")
     assert made == 0
     assert faults > 1000  # every block mapped afresh, as the user asked
+
+
+def test_the_setting_can_be_left_out():
+    _, plain = _faults("numpy")
+    made, faults = _faults("multislit", MULTISLIT_ALLOCATOR="system")
+    assert made == 0
+    assert faults > 0.5 * plain, (faults, plain)  # as without multislit

@@ -45,8 +45,8 @@ from multislit.reconstruct import ScanOptions, scan_capture, scan_image
 from multislit.sim import RigSpec, simulate_capture
 
 # A frame's image-sized buffers are kept in the heap when freed, so the next frame reuses them
-# rather than faulting their pages in again (:mod:`multislit._memory`; a user's own
-# MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_ stands).
+# rather than faulting their pages in again (:mod:`multislit._memory`; MULTISLIT_ALLOCATOR=system
+# or a user's own MALLOC_MMAP_THRESHOLD_ or MALLOC_TRIM_THRESHOLD_ leaves the allocator alone).
 keep_freed_buffers()
 
 __all__ = [

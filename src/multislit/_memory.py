@@ -24,14 +24,20 @@ MMAP_THRESHOLD = 32 * 2**20
 TRIM_THRESHOLD = 256 * 2**20
 #: The environment variables by which a user sets these; a user's own setting stands.
 _USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+#: ``MULTISLIT_ALLOCATOR=system`` in the environment leaves the allocator as it is.
+_OPT_OUT = ("MULTISLIT_ALLOCATOR", "system")
 
 
 def keep_freed_buffers() -> bool:
     """Set glibc's allocator to keep frame-sized blocks in the heap (:data:`MMAP_THRESHOLD`,
-    :data:`TRIM_THRESHOLD`); nothing on another C library, or where the user set either in the
-    environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``). Returns whether it
-    was set."""
-    if not sys.platform.startswith("linux") or any(k in os.environ for k in _USER_SETTINGS):
+    :data:`TRIM_THRESHOLD`); nothing on another C library, where the user set either in the
+    environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``), or with
+    ``MULTISLIT_ALLOCATOR=system``. Returns whether it was set."""
+    if (
+        not sys.platform.startswith("linux")
+        or any(k in os.environ for k in _USER_SETTINGS)
+        or os.environ.get(_OPT_OUT[0]) == _OPT_OUT[1]
+    ):
         return False
     try:
         libc = ctypes.CDLL(None)
