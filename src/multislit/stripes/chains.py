@@ -271,6 +271,15 @@ def settle_weak(
     return drop_short(out, min_length)
 
 
+@njit(cache=True, inline="always")
+def run_end(seg, lo):
+    """The end of the run of equal values of ``seg`` (K,) that starts at ``lo``."""
+    hi = lo + 1
+    while hi < seg.size and seg[hi] == seg[lo]:
+        hi += 1
+    return hi
+
+
 @njit(cache=True)
 def _weak_drops(seg, strong, peak, tail, weak_length):
     """:func:`settle_weak`'s drops along the points sorted by segment and position (``seg``,
@@ -284,9 +293,7 @@ def _weak_drops(seg, strong, peak, tail, weak_length):
     nxt = np.empty(n, np.int64)
     lo = 0
     while lo < n:
-        hi = lo + 1
-        while hi < n and seg[hi] == seg[lo]:
-            hi += 1
+        hi = run_end(seg, lo)
         first = -1
         last = -1
         for q in range(lo, hi):

@@ -54,7 +54,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from multislit.stripes.centres import StripeCentres, find_ridge_centres_validated, row_maxima
-from multislit.stripes.chains import drop_short, lex_order, link_segments, link_weak
+from multislit.stripes.chains import drop_short, lex_order, link_segments, link_weak, run_end
 from multislit.stripes.openings import remove_streaks
 from multislit.stripes.response import ridge_threshold
 from multislit.stripes.separation import (
@@ -555,9 +555,7 @@ def _window_slopes(a, b, seg, half):
     last = np.empty(n, np.int64)
     lo = 0
     while lo < n:
-        hi = lo + 1
-        while hi < n and seg[hi] == seg[lo]:
-            hi += 1
+        hi = run_end(seg, lo)
         for q in range(lo, hi):
             first[q] = lo
             last[q] = hi - 1
