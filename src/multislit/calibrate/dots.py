@@ -60,6 +60,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.special import erf as _erf
 
+from multislit._groups import group_medians
 from multislit.calibrate.board_dots import (
     Board,
     BoardDots,
@@ -549,24 +550,7 @@ def _candidate_brightness(
             with np.errstate(invalid="ignore", divide="ignore"):
                 ratio[m] = c.height[i] / view.stripe_peak(c.u[i], c.v[i])
     ratio[~(np.isfinite(ratio) & (ratio > 0))] = np.nan
-    return _group_median(cand, ratio, n_c)
-
-
-def _group_median(group: NDArray[np.intp], x: F64, n: int) -> F64:
-    """(n,) the median of the finite ``x`` of each group (NaN: none)."""
-    ok = np.isfinite(x)
-    out = np.full(n, np.nan)
-    if not ok.any():
-        return out
-    order = np.lexsort((x[ok], group[ok]))
-    g, xs = group[ok][order], x[ok][order]
-    start = np.searchsorted(g, np.arange(n), side="left")
-    stop = np.searchsorted(g, np.arange(n), side="right")
-    has = stop > start
-    lo = xs[np.minimum((start + stop - 1) // 2, len(xs) - 1)]
-    hi = xs[np.minimum((start + stop) // 2, len(xs) - 1)]
-    out[has] = 0.5 * (lo[has] + hi[has])
-    return out
+    return group_medians(ratio, cand, n_c)
 
 
 def _absorb(

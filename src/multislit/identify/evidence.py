@@ -41,8 +41,8 @@ from numba import njit, prange
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from multislit._groups import group_medians
 from multislit.identify.launch import launch
-from multislit.identify.pieces import group_medians
 from multislit.identify.result import DotMatches
 from multislit.identify.rig import RigGeometry
 from multislit.stripes.dots import (

@@ -36,6 +36,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from multislit._groups import group_medians
 from multislit.stripes.separation import saturation_level_of
 from multislit.stripes.sizes import FWHM_PER_SIGMA
 from multislit.stripes.validation import SlitExtractionError
@@ -473,13 +474,11 @@ def dot_response(
         e = np.quantile(lv, np.linspace(0.0, 1.0, _NOISE_BINS + 1))
         e[0], e[-1] = -np.inf, np.inf
         b = np.clip(np.searchsorted(e, lv, side="right") - 1, 0, _NOISE_BINS - 1)
-        for k in range(_NOISE_BINS):
-            xb = x[b == k]
-            if xb.size == 0:
-                continue
-            med = np.median(xb)
-            offset[z, k] = med
-            sig[z, k] = 1.4826 * np.median(np.abs(xb - med))
+        med = group_medians(x, b, _NOISE_BINS)
+        mad = group_medians(np.abs(x - med[b]), b, _NOISE_BINS)
+        has = np.isfinite(med)  # the bins without places keep offset 0 and sigma 1
+        offset[z, has] = med[has]
+        sig[z, has] = 1.4826 * mad[has]
         floor = _NOISE_FLOOR * max(float(np.median(sig[z])), 1e-12)
         sig[z] = np.maximum(sig[z], floor)
         edges[z] = np.nan_to_num(
