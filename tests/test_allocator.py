@@ -78,3 +78,17 @@ def test_the_setting_can_be_left_out():
     made, faults = _faults("multislit", MULTISLIT_ALLOCATOR="system")
     assert made == 0
     assert faults > 0.5 * plain, (faults, plain)  # as without multislit
+
+
+def test_an_unknown_choice_is_named_and_taken_as_the_default():
+    out = subprocess.run(
+        [sys.executable, "-c", "import multislit"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "MULTISLIT_ALLOCATOR": "sytem"},
+        timeout=120,
+        check=True,
+    )
+    assert "UserWarning: MULTISLIT_ALLOCATOR must be one of frames, system, got 'sytem'" in (
+        out.stderr
+    )

@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import warnings
 
 #: glibc's ``mallopt`` parameters (malloc.h).
 _M_TRIM_THRESHOLD = -1
@@ -24,19 +25,30 @@ MMAP_THRESHOLD = 32 * 2**20
 TRIM_THRESHOLD = 256 * 2**20
 #: The environment variables by which a user sets these; a user's own setting stands.
 _USER_SETTINGS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
-#: ``MULTISLIT_ALLOCATOR=system`` in the environment leaves the allocator as it is.
-_OPT_OUT = ("MULTISLIT_ALLOCATOR", "system")
+#: ``MULTISLIT_ALLOCATOR``: ``frames`` (the default) sets the allocator, ``system`` leaves it as
+#: it is.
+_CHOICE = "MULTISLIT_ALLOCATOR"
+_CHOICES = ("frames", "system")
 
 
 def keep_freed_buffers() -> bool:
     """Set glibc's allocator to keep frame-sized blocks in the heap (:data:`MMAP_THRESHOLD`,
     :data:`TRIM_THRESHOLD`); nothing on another C library, where the user set either in the
     environment (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``), or with
-    ``MULTISLIT_ALLOCATOR=system``. Returns whether it was set."""
+    ``MULTISLIT_ALLOCATOR=system``. Another value of ``MULTISLIT_ALLOCATOR`` is named in a
+    warning and taken as ``frames``. Returns whether it was set."""
+    choice = os.environ.get(_CHOICE, _CHOICES[0])
+    if choice not in _CHOICES:
+        warnings.warn(
+            f"{_CHOICE} must be one of {', '.join(_CHOICES)}, got {choice!r}: taken as "
+            f"{_CHOICES[0]!r} (set it to 'system' to leave the memory allocator as it is)",
+            stacklevel=2,
+        )
+        choice = _CHOICES[0]
     if (
-        not sys.platform.startswith("linux")
+        choice == "system"
+        or not sys.platform.startswith("linux")
         or any(k in os.environ for k in _USER_SETTINGS)
-        or os.environ.get(_OPT_OUT[0]) == _OPT_OUT[1]
     ):
         return False
     try:
