@@ -722,12 +722,12 @@ def _paths(u0, v0, um, vm, up, vp, amp, G, gvals, pu, pv, pa, m):
 
 
 @njit(cache=True)
-def _add_paths(x, m0, sides, n, ns, score, count):
-    """Add the log-likelihood ratios ``x`` of ``n`` dots' paths of ``ns`` places each (from
-    ``m0`` on, dot after dot), the dot i on the side ``sides[i]``, to ``score`` (2, S) per
-    slope; ``count`` (2, S) counts the places that favour a dot. Places that cannot be read
-    count neither way."""
-    m = m0
+def _add_paths(x, sides, n, ns, score, count):
+    """Add the log-likelihood ratios ``x`` of ``n`` dots' paths of ``ns`` places each (dot
+    after dot), the dot i on the side ``sides[i]``, to ``score`` (2, S) per slope; ``count``
+    (2, S) counts the places that favour a dot. Places that cannot be read count neither
+    way."""
+    m = 0
     for i in range(n):
         sd = sides[i]
         for gi in range(ns):
@@ -807,7 +807,7 @@ def _in_image(cand, n, shape, cam, R, t, dist, pu, pv, rec, rec_start, rec_end, 
     ``shape`` (H, W); their places into ``pu``, ``pv``), those in it recorded in ``rec``
     (:data:`_REC`, at least n) in their order: each slit's range of candidates, ``rec_start``,
     ``rec_end`` (N,) (-1: none), becomes its range of records, and its records per side are
-    counted in ``nuse`` (N, 2)."""
+    counted in ``nuse`` (N, 2) (the slits without candidates keep theirs)."""
     h, w = shape
     _project_many(cand[5], cand[6], cand[7], n, cam, R, t, dist, pu, pv)
     m = 0
@@ -897,7 +897,6 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
     quick = np.empty(nslit)
     cand = np.empty((_CAND, 1024))
     rec = np.empty((_REC, 1024))
-    nuse = np.zeros((nslit, 2), np.int64)
     work = _scratch(1024)
     pu = np.empty(1024)
     pv = np.empty(1024)
@@ -951,11 +950,7 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
             pu = np.empty(cand.shape[1])
             pv = np.empty(cand.shape[1])
             pa = np.empty(cand.shape[1])
-        n = _in_image(cand, n, shape, cam, R, t, dist, pu, pv, rec, rec_start, rec_end, nuse)
-        for k in range(nslit):
-            if rec_start[k] >= 0:
-                used[wi, k, 0] = nuse[k, 0]
-                used[wi, k, 1] = nuse[k, 1]
+        n = _in_image(cand, n, shape, cam, R, t, dist, pu, pv, rec, rec_start, rec_end, used[wi])
         _llr_at(rec[5], rec[6], rec[7], n, wsu[wi], wsv[wi], resp, chance, work)
         x = work[5]
         for k in range(nslit):  # the marginal's lower bound: the slope 0 alone
@@ -993,7 +988,7 @@ def _window_run(w0, w1, maxt, rays, order, win_start, hyp, rig, dots, wsu, wsv, 
             _llr_at(pu, pv, pa, nd * ns, wsu[wi], wsv[wi], resp, chance, work)
             score[:] = 0.0
             count[:] = 0
-            _add_paths(work[5], 0, sides, nd, ns, score, count)
+            _add_paths(work[5], sides, nd, ns, score, count)
             for sd in range(2):
                 lm, bi = _log_mean_exp(score[sd])
                 llr[wi, k, sd] = lm
@@ -1200,7 +1195,7 @@ def _gap_run(p0, p1, maxt, rays, a_order, a_start, b_order, b_start_, ga, gb, me
             _llr_at(pu, pv, pa, nd * ns, gsu[p], gsv[p], resp, chance, work)
             score[:] = 0.0
             count[:] = 0
-            _add_paths(work[5], 0, sides, nd, ns, score, count)
+            _add_paths(work[5], sides, nd, ns, score, count)
             fixed[p, k] = fx
             free_a[p, k] = _log_mean_exp(score[0])[0]
             free_b[p, k] = _log_mean_exp(score[1])[0]
