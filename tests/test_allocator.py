@@ -92,3 +92,4 @@ def test_an_unknown_choice_is_named_and_taken_as_the_default():
     assert "UserWarning: MULTISLIT_ALLOCATOR must be one of frames, system, got 'sytem'" in (
         out.stderr
     )
+    assert out.stderr.count("\n") == 1, out.stderr  # one line

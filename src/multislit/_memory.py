@@ -39,10 +39,13 @@ def keep_freed_buffers() -> bool:
     warning and taken as ``frames``. Returns whether it was set."""
     choice = os.environ.get(_CHOICE, _CHOICES[0])
     if choice not in _CHOICES:
-        warnings.warn(
+        # one line, placed at the variable (no source line under it)
+        warnings.warn_explicit(
             f"{_CHOICE} must be one of {', '.join(_CHOICES)}, got {choice!r}: taken as "
             f"{_CHOICES[0]!r} (set it to 'system' to leave the memory allocator as it is)",
-            stacklevel=2,
+            UserWarning,
+            f"environment {_CHOICE}",
+            0,
         )
         choice = _CHOICES[0]
     if (
