@@ -487,6 +487,7 @@ def find_ridge_centres_validated(
     taps: int = 1,
     follow: bool = True,
     image: NDArray | None = None,
+    levels: tuple[NDArray, NDArray, NDArray] | None = None,
 ) -> RidgeCentres:
     """Stripe centres where the ridge response stands out, which of them a single pixel
     shows too, and the stripes' lean at them.
@@ -497,7 +498,8 @@ def find_ridge_centres_validated(
     :func:`find_stripe_centres` centres its peaks (the largest smoothed sample within 1 px,
     ``method``'s 3-point fit). A centre is *strong* where the slit image's largest pixel
     within 1 px of it in its row exceeds ``threshold`` (what :func:`find_stripe_centres`
-    takes), *weak* otherwise; a weak centre is kept where its smoothed peak reaches
+    takes; both thresholds scaled by the noise at its level, with ``levels``), *weak*
+    otherwise; a weak centre is kept where its smoothed peak reaches
     :data:`RIDGE_SUPPORT` times the response at it. Saturated runs are centred as in
     :func:`find_stripe_centres` (strong). The response integrates along the stripes' lean
     where they lean (:func:`~multislit.stripes.response.lean_slopes`), and each centre
@@ -518,16 +520,24 @@ def find_ridge_centres_validated(
     taps : int, rows (odd) averaged along the stripe for the sub-pixel fit
     follow : bool, integrate and fit along the stripes' lean where they lean (default), else
         along the columns everywhere (all slopes 0)
-    image : (H, W) the image the slit image was made from, or None: a weak centre (not on a
-        wide stripe) is kept only where it stands out of both sides alike in it
-        (:func:`edge_contrast`)
+    image : (H, W) the image the slit image was made from, or None: a centre (not on a wide
+        stripe) whose pixels do not exceed ``threshold`` is kept only where it stands out of
+        both sides alike in it (:func:`edge_contrast`)
+    levels : (background (H, W), level (B,), scale (B,)) or None: the noise grows with the
+        background's level (:func:`~multislit.stripes.separation.noise_by_level`); both
+        thresholds are scaled at each peak by ``scale`` at its background's level (linear
+        between the ``level``s): a peak on a dark surface, where the noise is less than the
+        frame's, is found and is strong at a lower level. None: the thresholds hold
+        everywhere.
 
     Returns
     -------
     RidgeCentres
     """
     return RidgeCentres(
-        *_centres(s, threshold, method, sat, sw, taps, False, ridge_threshold, follow, image)
+        *_centres(
+            s, threshold, method, sat, sw, taps, False, ridge_threshold, follow, image, levels
+        )
     )
 
 
@@ -551,6 +561,7 @@ def _centres(
     ridge_threshold: float | None,
     follow: bool = True,
     image: NDArray | None = None,
+    levels: tuple[NDArray, NDArray, NDArray] | None = None,
 ) -> tuple[StripeCentres, NDArray[np.bool_], F64]:
     """The centres of :func:`find_centres_validated` (``ridge_threshold`` None: the peaks are
     the slit image's row maxima above ``threshold``, all strong, upright) or of
@@ -571,18 +582,30 @@ def _centres(
     else:
         cells = lean_slopes(s, float(sw)) if follow else None
         resp = ridge_response(s, float(sw), cells)
-        r, c0 = _row_maxima(resp, float(ridge_threshold), near, sv.size > 0)
+        if levels is None:
+            r, c0 = _row_maxima(resp, float(ridge_threshold), near, sv.size > 0)
+            scale = np.ones(r.size)
+        else:  # the peaks above the lowest level's threshold, then each above its own
+            bg, lv, sc = levels
+            low = float(ridge_threshold) * float(np.min(sc))
+            r, c0 = _row_maxima(resp, low, near, sv.size > 0)
+            scale = np.interp(bg[r, c0], lv, sc)
+            keep = resp[r, c0] > float(ridge_threshold) * scale
+            r, c0, scale = r[keep], c0[keep], scale[keep]
         lean = slopes_at(cells, r, c0) if follow else np.zeros(r.size)
         c, a, b, cc = _peak_samples(s, r, c0, wts, lean)
-        strong = _pixel_above(s, r, c, thr_exact)
+        # strong: above its level's threshold; bright: above the frame's (a dim peak, strong
+        # where its level is quiet, is still checked for a shadow's rim below)
+        bright = _pixel_above(s, r, c, thr_exact)
+        strong = bright if levels is None else _pixel_above(s, r, c, threshold * scale)
         keep = strong | (b >= RIDGE_SUPPORT * resp[r, c0])
         r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
-        lean, c0 = lean[keep], c0[keep]
+        lean, c0, bright = lean[keep], c0[keep], bright[keep]
         wide, u_wide = wide_centres(s, float(sw), r, c0, resp[r, c0].astype(np.float64))
         if image is not None:  # a wide stripe's sides lie beyond the nominal width's reach
-            weak = np.flatnonzero(~strong & ~wide)
+            dim = np.flatnonzero(~bright & ~wide)
             keep = np.ones(r.size, bool)
-            keep[weak] = edge_contrast(image, r[weak], c[weak], float(sw)) >= EDGE_CONTRAST
+            keep[dim] = edge_contrast(image, r[dim], c[dim], float(sw)) >= EDGE_CONTRAST
             r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
             lean, wide, u_wide = lean[keep], wide[keep], u_wide[keep]
     delta, width = _three_point(a, b, cc, "gaussian" if method == "gaussian" else "parabolic")
@@ -686,10 +709,24 @@ def _edge_contrast(img, r, c, d0, d1):
     return out
 
 
-@njit(cache=True)
 def _pixel_above(s, r, c, thr):
     """(K,) bool: the largest of ``s``'s (H, W) pixels c - 1 .. c + 1 (within the image) in
-    row r exceeds ``thr`` (float64), for the points ``r``, ``c`` (K,) intp."""
+    row r exceeds ``thr`` (float64: one for all, or (K,) one per point, compared as the
+    image's pixels are, :func:`_exact_threshold`), for the points ``r``, ``c`` (K,) intp."""
+    if np.ndim(thr) == 0:
+        return _pixel_above_kernel(s, r, c, np.full(r.size, float(thr)))
+    t = np.asarray(thr, np.float64)
+    t = (
+        np.floor(t)
+        if np.issubdtype(s.dtype, np.integer)
+        else t.astype(np.float32).astype(np.float64)
+    )
+    return _pixel_above_kernel(s, r, c, t)
+
+
+@njit(cache=True)
+def _pixel_above_kernel(s, r, c, thr):
+    """:func:`_pixel_above` with one threshold per point."""
     w = s.shape[1]
     out = np.empty(r.size, np.bool_)
     for k in range(r.size):
@@ -697,7 +734,7 @@ def _pixel_above(s, r, c, thr):
         best = -np.inf
         for j in range(max(c[k] - 1, 0), min(c[k] + 2, w)):
             best = max(best, float(row[j]))
-        out[k] = best > thr
+        out[k] = best > thr[k]
     return out
 
 

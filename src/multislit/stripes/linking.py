@@ -31,9 +31,11 @@ from multislit.stripes.separation import (
     PHOTO_OPENING_WIDTHS,
     background_validated,
     dot_size_validated,
+    noise_by_level,
     noise_from_difference,
     saturation_level_of,
     separate_validated,
+    shows_jpeg_blocks,
 )
 from multislit.stripes.sizes import (
     estimate_stripe_width,
@@ -133,6 +135,17 @@ def _empty_extraction(img: NDArray, noise: float, sw: float, ds: float) -> SlitE
         by_column=np.zeros(0, bool),
         plane=img,
     )
+
+
+def _levels(img: NDArray, bg: NDArray, noise: float) -> tuple | None:
+    """The frame's noise by background level for the thresholds (:func:`noise_by_level`,
+    with the row background ``bg``), or None where the image shows a JPEG's blocks
+    (:func:`shows_jpeg_blocks`: its errors do not show as noise; the frame's noise, at least
+    a quantisation step, holds everywhere)."""
+    if shows_jpeg_blocks(img):
+        return None
+    lv, sc = noise_by_level(img, bg, noise)
+    return bg, lv, sc
 
 
 def extract_slits(
@@ -285,6 +298,7 @@ def extract_slits(
         strong = np.ones(centres.u.size, bool)
         slope = np.zeros(centres.u.size)
     else:
+        levels = _levels(img, bg, noise)
         centres, strong, slope = find_ridge_centres_validated(
             slits,
             k_sigma * noise,
@@ -294,6 +308,7 @@ def extract_slits(
             sw,
             taps,
             image=img,
+            levels=levels,
         )
     if reject_texture:
         r = np.rint(centres.v).astype(np.intp)
@@ -318,7 +333,18 @@ def extract_slits(
         thr = k_sigma * noise
         lk = segment >= 0
         rows = (centres.v[lk], centres.u[lk])  # the row pass's stripes, in the columns' frame
-        cols = column_pass(img, sw, ds, thr, method, level, taps, link, rows)
+        cols = column_pass(
+            img,
+            sw,
+            ds,
+            thr,
+            method,
+            level,
+            taps,
+            link,
+            rows,
+            None if levels is None else levels[1:],
+        )
         merged = merge_passes(
             centres,
             segment,

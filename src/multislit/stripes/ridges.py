@@ -227,6 +227,7 @@ def column_pass(
     taps: int,
     link: dict,
     barrier: tuple[F64, F64],
+    levels: tuple[F64, F64] | None = None,
 ) -> ColumnCentres:
     """The centres of the stripes that lean towards the horizontal (see the module).
 
@@ -244,6 +245,9 @@ def column_pass(
     taps : int, pixels (odd) averaged along the stripe for the sub-pixel fit
     link : the keyword arguments of :func:`~multislit.stripes.chains.link_segments`
     barrier : ((M,) float64, (M,) float64), px, the (v, u) of the row pass's linked centres
+    levels : ((B,) float64, (B,) float64) or None, the frame's noise by background level
+        (:func:`~multislit.stripes.separation.noise_by_level`): the thresholds scale with it
+        at each peak, by the crop's background there
 
     Returns
     -------
@@ -268,18 +272,26 @@ def column_pass(
         a0, a1 = _widen8(max(0, r0 - margin), min(h, r1 + margin), h)
         b0, b1 = max(0, c0 - margin), min(w, c1 + margin)
         t = cv2.transpose(np.ascontiguousarray(img[a0:a1, b0:b1]))
+        bg = row_opening_background(t, stripe_width_px, COLUMN_OPENING_WIDTHS)
         hp, slits, sat, _ = separate_validated(
             t,
             stripe_width_px,
             dot_size_px,
             level,
             background="opening",
-            bg=row_opening_background(t, stripe_width_px, COLUMN_OPENING_WIDTHS),
+            bg=bg,
             lean_decimation=_LEAN_DECIMATION,
             keep_ends=True,
         )
         found, firm, slope = find_ridge_centres_validated(
-            slits, threshold, ridge, method, sat, stripe_width_px, taps
+            slits,
+            threshold,
+            ridge,
+            method,
+            sat,
+            stripe_width_px,
+            taps,
+            levels=None if levels is None else (bg, *levels),
         )
         # the transposed crop's row is the column, its sub-pixel column the row
         u, v = found.v + b0, found.u + a0
