@@ -764,12 +764,14 @@ def noise_from_difference(img: NDArray) -> float:
     return max(sigma, quantisation_step(img))
 
 
-#: The noise by background level (:func:`noise_by_level`) is measured in this many bins of the
-#: level, each of an equal share of the samples ...
+#: The noise by background level (:func:`noise_by_level`) is measured in this many bins, even
+#: in the square root of the level ...
 _LEVEL_BINS = 24
 #: ... of at least this many samples ...
-_LEVEL_MIN_COUNT = 2000
-#: ... from every this-many-th column of the row pairs.
+_LEVEL_MIN_COUNT = 500
+#: ... and their differences counted up to this many quantisation steps.
+_LEVEL_STEPS = 64
+#: ... from every this-many-th column of every this-many-th pair of rows.
 _LEVEL_STRIDE = 2
 #: A level's noise is taken as no less than this share of the frame's.
 LEVEL_NOISE_FLOOR = 0.35
@@ -780,7 +782,7 @@ LEVEL_NOISE_FLOOR = 0.35
 #: was compressed ...
 _BLOCK_RATIO = 1.05
 #: ... read on every this-many-th column.
-_BLOCK_STRIDE = 2
+_BLOCK_STRIDE = 4
 
 
 def shows_jpeg_blocks(img: NDArray) -> bool:
@@ -802,16 +804,36 @@ def shows_jpeg_blocks(img: NDArray) -> bool:
     return bool(np.median(ratio[inside > 0]) > _BLOCK_RATIO) if np.any(inside > 0) else False
 
 
-def _robust_sigma(ad: NDArray) -> float:
-    """The sigma of a normal whose absolute values ``ad`` (in quantisation steps, whole
-    numbers for integer data) are: from the share P of them up to the first whole j that
-    holds half, sigma = (j + 1/2) / Phi^-1((1 + P) / 2) (the median absolute deviation,
+def _robust_sigma(hist: NDArray) -> float:
+    """The sigma of a normal whose absolute values, rounded to whole quantisation steps, have
+    the histogram ``hist`` (step 0, 1, ...): from the share P of them up to the first whole j
+    that holds half, sigma = (j + 1/2) / Phi^-1((1 + P) / 2) (the median absolute deviation,
     read on quantised values); dots and stripe edges, a minority, move it little."""
-    q = np.floor(ad + 0.5).astype(np.int64)
-    cum = np.cumsum(np.bincount(q)) / max(q.size, 1)
+    cum = np.cumsum(hist) / max(float(hist.sum()), 1.0)
     j = int(np.searchsorted(cum, 0.5))
-    p = min(float(cum[j]), 1.0 - 1e-9)
+    p = min(float(cum[min(j, cum.size - 1)]), 1.0 - 1e-9)
     return (j + 0.5) / float(ndtri(0.5 * (1.0 + p)))
+
+
+@njit(cache=True)
+def _level_histograms(img, bg, stride, nbins, top, step):
+    """:func:`noise_by_level`'s samples: the pairs of rows (r, r + 1) for every ``2 stride``-th
+    r, every ``stride``-th column, binned by the square root of their mean background (``nbins`` even bins up to
+    ``top``): per bin the histogram of their absolute difference in whole steps of ``step``
+    (:data:`_LEVEL_STEPS` columns, the last taking the rest), and the sum of their levels."""
+    hist = np.zeros((nbins, _LEVEL_STEPS), np.int64)
+    lsum = np.zeros(nbins)
+    h, w = img.shape
+    scale = nbins / top if top > 0.0 else 0.0
+    for r in range(0, h - 1, 2 * stride):
+        for c in range(0, w, stride):
+            lv = 0.5 * (float(bg[r, c]) + float(bg[r + 1, c]))
+            b = int(math.sqrt(max(lv, 0.0)) * scale)
+            b = min(max(b, 0), nbins - 1)
+            q = int(abs(float(img[r + 1, c]) - float(img[r, c])) / step + 0.5)
+            hist[b, min(q, _LEVEL_STEPS - 1)] += 1
+            lsum[b] += lv
+    return hist, lsum
 
 
 def noise_by_level(
@@ -820,13 +842,14 @@ def noise_by_level(
     """The pixel noise as it grows with the background's level (shot noise), relative to the
     frame's (:func:`noise_from_difference`).
 
-    The differences of vertical neighbours (as :func:`noise_from_difference` takes them) are
-    binned by the row background's level at them;
+    The differences of vertical neighbours (as :func:`noise_from_difference` takes them, on
+    every :data:`_LEVEL_STRIDE`-th column of every :data:`_LEVEL_STRIDE`-th pair of rows) are binned by the row background's level at them;
     per bin (:data:`_LEVEL_BINS` even in the square root of the level, as the shot noise's sigma
     grows) the noise is the robust sigma of the differences read on their quantised values
-    (:func:`_robust_sigma`), over the square root of 2. The frame's median of differences is
-    a whole step or more on integer data; on a dark surface of an 8-bit image the noise is
-    well under a grey level.
+    (:func:`_robust_sigma`), over the square root of 2, with the pixels' rounding (a step over
+    the square root of 12) added back. The frame's median of differences is a whole step or
+    more on integer data; on a dark surface of an 8-bit image the noise is about half a grey
+    level.
 
     Parameters
     ----------
@@ -836,47 +859,25 @@ def noise_by_level(
 
     Returns
     -------
-    levels : (B,) float64, intensity units, the bins' median background levels (increasing)
+    levels : (B,) float64, intensity units, the bins' mean background levels (increasing)
     scale : (B,) float64, each level's noise over ``noise``, between
         :data:`LEVEL_NOISE_FLOOR` and 1 (a level is never taken as noisier than the frame)
     """
     if img.shape[0] < 2 or not noise > 0:
         return np.zeros(1), np.ones(1)
-    a = img[1::2, ::_LEVEL_STRIDE].astype(np.float32)
-    b = img[0 : 2 * a.shape[0] : 2, ::_LEVEL_STRIDE].astype(np.float32)
-    d = (a - b).ravel()
-    lv = (
-        0.5
-        * (
-            background[1::2, ::_LEVEL_STRIDE].astype(np.float32)
-            + background[0 : 2 * a.shape[0] : 2, ::_LEVEL_STRIDE].astype(np.float32)
-        )
-    ).ravel()
-    # bins even in the square root of the level (as the shot noise's sigma grows), each of at
-    # least _LEVEL_MIN_COUNT samples (merged upwards)
-    root = np.sqrt(np.maximum(lv, 0.0))
-    top = float(root.max()) if root.size else 0.0
-    edges = np.linspace(0.0, top, _LEVEL_BINS + 1)[1:-1]
-    which = np.searchsorted(edges, root, side="right")
-    counts = np.bincount(which, minlength=_LEVEL_BINS)
-    merged = np.zeros(_LEVEL_BINS, np.int64)
-    cur, acc = 0, 0
-    for i in range(_LEVEL_BINS):
-        merged[i] = cur
-        acc += int(counts[i])
-        if acc >= _LEVEL_MIN_COUNT:
-            cur, acc = cur + 1, 0
-    if acc and cur:  # a last bin too small joins the one before
-        merged[merged == cur] = cur - 1
-    group = merged[which]
-    nb = int(group.max()) + 1 if group.size else 0
     step = quantisation_step(img)
-    levels = np.empty(nb)
-    scale = np.empty(nb)
-    for i in range(nb):
-        sel = group == i
-        levels[i] = float(np.median(lv[sel]))
-        scale[i] = _robust_sigma(np.abs(d[sel]) / step) * step / math.sqrt(2.0) / noise
+    top = math.sqrt(max(float(background.max()), 0.0))
+    hist, lsum = _level_histograms(img, background, _LEVEL_STRIDE, _LEVEL_BINS, top, step)
+    # bins even in the square root of the level; those of fewer than _LEVEL_MIN_COUNT samples
+    # say nothing (the levels between the others are interpolated)
+    counts = hist.sum(axis=1)
+    keep = counts >= _LEVEL_MIN_COUNT
+    if not keep.any():
+        return np.zeros(1), np.ones(1)
+    levels = lsum[keep] / counts[keep]
+    # the differences' sigma less the rounding of each pixel, then the pixels' (with it)
+    sigma = np.array([_robust_sigma(x) for x in hist[keep]]) * step / math.sqrt(2.0)
+    scale = np.sqrt(sigma**2 + step**2 / 12.0) / noise
     # the noise does not fall as the level rises (read noise plus shot noise), and a level's
     # texture (an albedo's grain, edges) only adds to its spread: the lower envelope
     scale = np.minimum.accumulate(scale[::-1])[::-1]
