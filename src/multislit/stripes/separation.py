@@ -767,12 +767,13 @@ def noise_from_difference(img: NDArray) -> float:
 #: The noise by background level (:func:`noise_by_level`) is measured in this many bins, even
 #: in the square root of the level ...
 _LEVEL_BINS = 24
-#: ... of at least this many samples ...
+#: ... a bin of fewer than this many samples saying nothing ...
 _LEVEL_MIN_COUNT = 500
-#: ... and their differences counted up to this many quantisation steps.
-_LEVEL_STEPS = 64
-#: ... from every this-many-th column of every this-many-th pair of rows.
+#: ... on every this-many-th column of every this-many-th pair of rows.
 _LEVEL_STRIDE = 2
+#: The differences are counted up to this many quantisation steps (the last count holds the
+#: rest).
+_LEVEL_STEPS = 64
 #: A level's noise is taken as no less than this share of the frame's.
 LEVEL_NOISE_FLOOR = 0.35
 
