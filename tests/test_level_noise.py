@@ -104,3 +104,18 @@ def test_a_jpeg_keeps_the_frames_noise():
         # the dark surface's differences show: no centre off the stripes
         ex = extract_slits(jpeg, stripe_width_px=SW, dot_size_px=1.9)
         assert _dark_hits(ex, cols, (0, 150))[1] == 0, quality
+
+
+def test_noise_of_many_grey_levels_is_measured_too():
+    # 16-bit data whose noise spans hundreds of steps: the differences are read in eighths of
+    # the frame's noise, not in steps (which would cap them and take the noise for far less)
+    rng = np.random.default_rng(4)
+    level = np.where(np.arange(320) < 160, 20000.0, 2000.0)[None, :].repeat(200, 0)
+    img = np.clip(np.rint(level + rng.normal(0.0, 1.0, level.shape) * np.sqrt(level)), 0, 65535)
+    img = img.astype(np.uint16)
+    noise = noise_from_difference(img)
+    levels, scale = noise_by_level(img, level, noise)
+    assert float(np.interp(20000.0, levels, scale)) == 1.0
+    # sqrt(2000) / sqrt(20000) of the bright half's, the frame's about the mean of the two
+    dark = float(np.interp(2000.0, levels, scale)) * noise
+    assert dark == pytest.approx(np.sqrt(2000.0), rel=0.15)

@@ -584,7 +584,6 @@ def _centres(
         resp = ridge_response(s, float(sw), cells)
         if levels is None:
             r, c0 = _row_maxima(resp, float(ridge_threshold), near, sv.size > 0)
-            scale = np.ones(r.size)
         else:  # the peaks above the lowest level's threshold, then each above its own
             bg, lv, sc = levels
             low = float(ridge_threshold) * float(np.min(sc))

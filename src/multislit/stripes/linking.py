@@ -137,7 +137,7 @@ def _empty_extraction(img: NDArray, noise: float, sw: float, ds: float) -> SlitE
     )
 
 
-def _levels(img: NDArray, bg: NDArray, noise: float) -> tuple | None:
+def _levels(img: NDArray, bg: NDArray, noise: float) -> tuple[NDArray, F64, F64] | None:
     """The frame's noise by background level for the thresholds (:func:`noise_by_level`,
     with the row background ``bg``), or None where the image shows a JPEG's blocks
     (:func:`shows_jpeg_blocks`: its errors do not show as noise; the frame's noise, at least

@@ -790,10 +790,10 @@ def shows_jpeg_blocks(img: NDArray) -> bool:
     """Whether the image shows the 8 x 8 blocks of a JPEG (or another block transform): per
     band of 8 rows, the mean absolute difference between its last row and the next band's
     first over that of its own neighbouring rows; the median over the bands exceeds
-    :data:`_BLOCK_RATIO` (on the simulator's frames 0.97-1.02 raw, 0.97-1.17 at JPEG quality 98,
-    1.09-1.32 at 95, 1.19-1.52 at 90; a scene's edge moves a band or two, not the median). A compressed image's
-    errors (a step or so, shaped like the image) do not show in its differences: its noise is
-    not measured there.
+    :data:`_BLOCK_RATIO` (on the simulator's frames 0.97-1.02 raw, 0.97-1.17 at JPEG quality
+    98, 1.09-1.32 at 95, 1.19-1.52 at 90; a scene's edge moves a band or two, not the median).
+    A compressed image's errors (a step or so, shaped like the image) do not show in its
+    differences: its noise is not measured there.
     """
     nb = (img.shape[0] - 1) // 8
     if nb < 2:
@@ -806,10 +806,11 @@ def shows_jpeg_blocks(img: NDArray) -> bool:
 
 
 def _robust_sigma(hist: NDArray) -> float:
-    """The sigma of a normal whose absolute values, rounded to whole quantisation steps, have
-    the histogram ``hist`` (step 0, 1, ...): from the share P of them up to the first whole j
+    """The sigma (in units) of a normal whose absolute values, rounded to whole units, have
+    the histogram ``hist`` (0, 1, ... units): from the share P of them up to the first whole j
     that holds half, sigma = (j + 1/2) / Phi^-1((1 + P) / 2) (the median absolute deviation,
-    read on quantised values); dots and stripe edges, a minority, move it little."""
+    read on rounded values, as integer data gives them); dots and stripe edges, a minority,
+    move it little."""
     cum = np.cumsum(hist) / max(float(hist.sum()), 1.0)
     j = int(np.searchsorted(cum, 0.5))
     p = min(float(cum[min(j, cum.size - 1)]), 1.0 - 1e-9)
@@ -817,11 +818,12 @@ def _robust_sigma(hist: NDArray) -> float:
 
 
 @njit(cache=True)
-def _level_histograms(img, bg, stride, nbins, top, step):
-    """:func:`noise_by_level`'s samples: the pairs of rows (r, r + 1) for every ``2 stride``-th
-    r, every ``stride``-th column, binned by the square root of their mean background (``nbins`` even bins up to
-    ``top``): per bin the histogram of their absolute difference in whole steps of ``step``
-    (:data:`_LEVEL_STEPS` columns, the last taking the rest), and the sum of their levels."""
+def _level_histograms(img, bg, stride, nbins, top, unit):
+    """:func:`noise_by_level`'s samples: the pairs of rows (r, r + 1) for every
+    ``2 stride``-th r, every ``stride``-th column, binned by the square root of their mean
+    background (``nbins`` even bins up to ``top``): per bin the histogram of their absolute
+    difference in whole ``unit``s (:data:`_LEVEL_STEPS` columns, the last taking the rest),
+    and the sum of their levels."""
     hist = np.zeros((nbins, _LEVEL_STEPS), np.int64)
     lsum = np.zeros(nbins)
     h, w = img.shape
@@ -831,7 +833,7 @@ def _level_histograms(img, bg, stride, nbins, top, step):
             lv = 0.5 * (float(bg[r, c]) + float(bg[r + 1, c]))
             b = int(math.sqrt(max(lv, 0.0)) * scale)
             b = min(max(b, 0), nbins - 1)
-            q = int(abs(float(img[r + 1, c]) - float(img[r, c])) / step + 0.5)
+            q = int(abs(float(img[r + 1, c]) - float(img[r, c])) / unit + 0.5)
             hist[b, min(q, _LEVEL_STEPS - 1)] += 1
             lsum[b] += lv
     return hist, lsum
@@ -844,11 +846,13 @@ def noise_by_level(
     frame's (:func:`noise_from_difference`).
 
     The differences of vertical neighbours (as :func:`noise_from_difference` takes them, on
-    every :data:`_LEVEL_STRIDE`-th column of every :data:`_LEVEL_STRIDE`-th pair of rows) are binned by the row background's level at them;
-    per bin (:data:`_LEVEL_BINS` even in the square root of the level, as the shot noise's sigma
-    grows) the noise is the robust sigma of the differences read on their quantised values
-    (:func:`_robust_sigma`), over the square root of 2, with the pixels' rounding (a step over
-    the square root of 12) added back. The frame's median of differences is a whole step or
+    every :data:`_LEVEL_STRIDE`-th column of every :data:`_LEVEL_STRIDE`-th pair of rows) are
+    binned by the row background's level at them (:data:`_LEVEL_BINS` bins even in the square
+    root of the level, as the shot noise's sigma grows). Per bin the noise is the robust sigma
+    of the differences read on whole units (:func:`_robust_sigma`; a unit is the quantisation
+    step, or an eighth of the frame's noise where that is more), over the square root of 2:
+    the noise before the pixels' rounding, which is then added back (a step over the square
+    root of 12). The frame's median of differences is a whole step or
     more on integer data; on a dark surface of an 8-bit image the noise is about half a grey
     level.
 
@@ -867,8 +871,9 @@ def noise_by_level(
     if img.shape[0] < 2 or not noise > 0:
         return np.zeros(1), np.ones(1)
     step = quantisation_step(img)
+    unit = max(step, noise / 8.0)
     top = math.sqrt(max(float(background.max()), 0.0))
-    hist, lsum = _level_histograms(img, background, _LEVEL_STRIDE, _LEVEL_BINS, top, step)
+    hist, lsum = _level_histograms(img, background, _LEVEL_STRIDE, _LEVEL_BINS, top, unit)
     # bins even in the square root of the level; those of fewer than _LEVEL_MIN_COUNT samples
     # say nothing (the levels between the others are interpolated)
     counts = hist.sum(axis=1)
@@ -876,8 +881,7 @@ def noise_by_level(
     if not keep.any():
         return np.zeros(1), np.ones(1)
     levels = lsum[keep] / counts[keep]
-    # the differences' sigma less the rounding of each pixel, then the pixels' (with it)
-    sigma = np.array([_robust_sigma(x) for x in hist[keep]]) * step / math.sqrt(2.0)
+    sigma = np.array([_robust_sigma(x) for x in hist[keep]]) * unit / math.sqrt(2.0)
     scale = np.sqrt(sigma**2 + step**2 / 12.0) / noise
     # the noise does not fall as the level rises (read noise plus shot noise), and a level's
     # texture (an albedo's grain, edges) only adds to its spread: the lower envelope
