@@ -173,7 +173,9 @@ def extract_slits(
     across the stripe at its width and integrated along it, above
     :data:`~multislit.stripes.response.RIDGE_K_FRACTION` times ``k_sigma`` of the response's
     noise; a centre is strong where a single pixel exceeds ``k_sigma`` times the highpass
-    noise, weak where the response alone shows it; saturated runs from the image) ->
+    noise, weak where the response alone shows it; both noises scaled at each peak by the noise
+    at its background's level, :func:`~multislit.stripes.separation.noise_by_level`, unless the
+    image shows a JPEG's blocks; saturated runs from the image) ->
     :func:`~multislit.stripes.chains.link_segments` along the stripes' lean, the weak centres
     settled by :func:`~multislit.stripes.chains.settle_weak` (weak runs at a segment's ends
     are kept where :data:`~multislit.stripes.chains.WEAK_TAIL_FACTOR` times ``min_length``
@@ -211,10 +213,10 @@ def extract_slits(
     image : (H, W) grayscale or (H, W, 3) RGB image, uint8, uint16 or float
     stripe_width_px, dot_size_px : FWHMs (px); estimated from the image if None
     method : sub-pixel method, one of :data:`CENTRE_METHODS`
-    k_sigma : detection threshold in noise sigmas (the noise is at least one quantisation
-        step of the data): a single pixel's, and (times
-        :data:`~multislit.stripes.response.RIDGE_K_FRACTION`, in sigmas of its own noise) the
-        ridge response's
+    k_sigma : detection threshold in noise sigmas (the frame's noise, at least one
+        quantisation step of the data, scaled down where the background's level is quieter): a
+        single pixel's, and (times :data:`~multislit.stripes.response.RIDGE_K_FRACTION`, in
+        sigmas of its own noise) the ridge response's
     saturation_level : camera saturation value; default read from the data (flat tops piling
         up at the top of the histogram), else the dtype maximum for integer images
     v_smooth : rows (odd) averaged along the stripe for the sub-pixel fit
