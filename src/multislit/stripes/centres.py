@@ -541,9 +541,15 @@ def find_ridge_centres_validated(
     )
 
 
-def _exact_threshold(s: NDArray, threshold: float) -> float:
-    """``threshold`` as the image's pixels are compared with it: floored for integer images,
-    rounded to float32 for float32 ones."""
+def _exact_threshold(s: NDArray, threshold: float | F64) -> float | F64:
+    """``threshold`` (a number, or an array of them) as the image's pixels are compared with
+    it: floored for integer images, rounded to float32 for float32 ones."""
+    if np.ndim(threshold):
+        t = np.asarray(threshold, np.float64)
+        if np.issubdtype(s.dtype, np.integer):
+            return np.floor(t)
+        with np.errstate(over="ignore"):
+            return t.astype(np.float32).astype(np.float64)
     if np.issubdtype(s.dtype, np.integer):
         return float(math.floor(threshold))
     with np.errstate(over="ignore"):
@@ -595,8 +601,12 @@ def _centres(
         c, a, b, cc = _peak_samples(s, r, c0, wts, lean)
         # strong: above its level's threshold; bright: above the frame's (a dim peak, strong
         # where its level is quiet, is still checked for a shadow's rim below)
-        bright = _pixel_above(s, r, c, thr_exact)
-        strong = bright if levels is None else _pixel_above(s, r, c, threshold * scale)
+        bright = _pixel_above(s, r, c, np.full(r.size, thr_exact))
+        strong = (
+            bright
+            if levels is None
+            else _pixel_above(s, r, c, _exact_threshold(s, threshold * scale))
+        )
         keep = strong | (b >= RIDGE_SUPPORT * resp[r, c0])
         r, c, a, b, cc, strong = r[keep], c[keep], a[keep], b[keep], cc[keep], strong[keep]
         lean, c0, bright = lean[keep], c0[keep], bright[keep]
@@ -708,24 +718,11 @@ def _edge_contrast(img, r, c, d0, d1):
     return out
 
 
+@njit(cache=True)
 def _pixel_above(s, r, c, thr):
     """(K,) bool: the largest of ``s``'s (H, W) pixels c - 1 .. c + 1 (within the image) in
-    row r exceeds ``thr`` (float64: one for all, or (K,) one per point, compared as the
-    image's pixels are, :func:`_exact_threshold`), for the points ``r``, ``c`` (K,) intp."""
-    if np.ndim(thr) == 0:
-        return _pixel_above_kernel(s, r, c, np.full(r.size, float(thr)))
-    t = np.asarray(thr, np.float64)
-    t = (
-        np.floor(t)
-        if np.issubdtype(s.dtype, np.integer)
-        else t.astype(np.float32).astype(np.float64)
-    )
-    return _pixel_above_kernel(s, r, c, t)
-
-
-@njit(cache=True)
-def _pixel_above_kernel(s, r, c, thr):
-    """:func:`_pixel_above` with one threshold per point."""
+    row r exceeds ``thr[k]`` ((K,) float64, compared as the image's pixels are:
+    :func:`_exact_threshold`), for the points ``r``, ``c`` (K,) intp."""
     w = s.shape[1]
     out = np.empty(r.size, np.bool_)
     for k in range(r.size):
