@@ -14,12 +14,18 @@ time; then, per method, how many scenes meet the goals (resolvable object covera
 wrong <= 0.2 %, <= 0.1 % at confidence >= 0.5; backdrop >= 95 % and <= 0.1 % wrong) and,
 per kind of object (spheres, rods, boxes, ...), where its resolvable centres go.
 
+``--confidence C [C ...]`` identifies every scene at each of these required confidences
+(``IdentifyOptions.min_confidence``) instead of the method's default: the same tables and goals
+per confidence, how much of the objects each confidence covers against how many of their points
+it labels wrong. ``--write`` records them in a section of their own.
+
 Seeds: 0-99 are tuning seeds (look at them while developing); 1000 and above are held out
 (report on them, never tune on them). ``--held-out N`` runs seeds 1000, 1001, ...; seeds of
 ``--seeds`` all 1000 or above are reported as held out too.
 
 Run:  .venv/bin/python benchmarks/bench_zoo.py [--seeds 0 1 2] [--held-out N] [--size 640 512]
-      [--scenes 2] [--method geometry template] [--keep DIR] [--write]
+      [--scenes 2] [--method geometry template] [--confidence 0.9 0.98 0.995] [--keep DIR]
+      [--write]
 """
 
 from __future__ import annotations
@@ -142,18 +148,31 @@ def _by_kind(tally: dict[str, dict[str, Counter]]) -> list[str]:
     return out
 
 
+def _runs(methods: list[str], confidences: list[float] | None) -> list[tuple[str, IdentifyOptions]]:
+    """(label, options) per identification of a scene: each method at its default confidence,
+    or at each of ``confidences`` (the label then names it)."""
+    if not confidences:
+        return [(m, IdentifyOptions(method=m)) for m in methods]
+    return [
+        (f"{m} at {c:g}", IdentifyOptions(method=m, min_confidence=c))
+        for m in methods
+        for c in confidences
+    ]
+
+
 def run_seed(
     seed: int,
     folder: Path,
     size: tuple[int, int],
     scenes: int,
-    methods: list[str],
+    runs: list[tuple[str, IdentifyOptions]],
     rows: list,
     tally: dict[str, dict[str, Counter]],
 ) -> list[str]:
     """Simulate (or reuse), calibrate and identify one zoo seed; print its lines, return them;
-    each scene's (method, object scores, backdrop scores) appended to ``rows``, its losses by
-    kind of object added to ``tally`` (method -> kind -> counts)."""
+    each scene's (label, object scores, backdrop scores) appended to ``rows`` per run of
+    ``runs`` ((label, options), :func:`_runs`), its losses by kind of object added to
+    ``tally`` (label -> kind -> counts)."""
     cap = _capture(folder, seed, size, scenes)
     res, why = _calibrate(cap)
     summary = _calibration_summary(res) if res is not None else why
@@ -180,11 +199,11 @@ def run_seed(
                 "remove the folder to simulate it again"
             )
         snr = truth["stripe_snr"]
-        for method in methods:
+        for method, options in runs:
             cells = f"| {seed} | {p.stem} | {method} |"
             try:
                 t = time.perf_counter()
-                ident = identify(img, ref, rig, options=IdentifyOptions(method=method))
+                ident = identify(img, ref, rig, options=options)
                 dt = time.perf_counter() - t
             except MultislitError as exc:
                 lines.append(cells + f" not run: {str(exc)[:100]} | | | | | | | |")
@@ -244,6 +263,15 @@ def main() -> None:
         "--method", nargs="+", choices=METHODS, default=list(METHODS), help="methods to run"
     )
     ap.add_argument(
+        "--confidence",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="C",
+        help="identify at each of these required confidences (0..1) instead of the method's "
+        "default, to see what each covers against what it labels wrong",
+    )
+    ap.add_argument(
         "--keep", type=Path, default=None, help="keep the captures here (and reuse them)"
     )
     ap.add_argument(
@@ -253,12 +281,16 @@ def main() -> None:
     seeds = (
         list(range(HELD_OUT_START, HELD_OUT_START + args.held_out)) if args.held_out else args.seeds
     )
+    try:
+        runs = _runs(args.method, args.confidence)
+    except ValueError as exc:
+        ap.error(f"--confidence: {exc}")
     held_out = min(seeds) >= HELD_OUT_START
     if not held_out and max(seeds) >= HELD_OUT_START:
         ap.error(f"mix no tuning seeds (< {HELD_OUT_START}) with held-out ones")
     print(
         f"zoo identification, seeds {seeds}, images at most {args.size[0]}x{args.size[1]} px, "
-        f"methods {', '.join(args.method)}"
+        f"runs {', '.join(label for label, _ in runs)}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
@@ -274,16 +306,18 @@ def main() -> None:
         tally: dict[str, dict[str, Counter]] = {}
         for seed in seeds:
             folder = root / f"zoo_{seed}_{args.size[0]}x{args.size[1]}_{args.scenes}"
-            lines += run_seed(seed, folder, tuple(args.size), args.scenes, args.method, rows, tally)
+            lines += run_seed(seed, folder, tuple(args.size), args.scenes, runs, rows, tally)
         goals = _goals(rows)
         kinds = _by_kind(tally)
         print("\n".join(goals + [""] + kinds))
         lines += ["Goals, per method:", "", *goals, "", *kinds]
     if args.write:
         kind = "held_out" if held_out else "tuning"
+        by = " by the required confidence" if args.confidence else ""
         write_section(
-            f"bench_zoo_{kind}",
-            f"Objects apart from the backdrop: zoo rigs and scenes ({kind.replace('_', '-')} seeds)",
+            f"bench_zoo_{kind}" + ("_confidence" if args.confidence else ""),
+            f"Objects apart from the backdrop{by}: zoo rigs and scenes "
+            f"({kind.replace('_', '-')} seeds)",
             "\n".join(lines).rstrip(),
             command_line("bench_zoo.py"),
         )

@@ -17,3 +17,18 @@ def test_the_benchmark_starts(script):
     )
     assert run.returncode == 0, run.stderr[-500:]
     assert "usage" in run.stdout.lower()
+
+
+@pytest.mark.slow  # a fresh interpreter
+def test_the_zoo_benchmark_refuses_a_confidence_out_of_range():
+    script = SCRIPTS[0].parent / "bench_zoo.py"
+    run = subprocess.run(
+        [sys.executable, str(script), "--confidence", "0.9", "1.5"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 2
+    last = run.stderr.strip().splitlines()[-1]
+    assert "--confidence" in last and "[0, 1]" in last and "1.5" in last, run.stderr
+    assert "Traceback" not in run.stderr
