@@ -199,8 +199,8 @@ def run_seed(
                 "remove the folder to simulate it again"
             )
         snr = truth["stripe_snr"]
-        for method, options in runs:
-            cells = f"| {seed} | {p.stem} | {method} |"
+        for label, options in runs:
+            cells = f"| {seed} | {p.stem} | {label} |"
             try:
                 t = time.perf_counter()
                 ident = identify(img, ref, rig, options=options)
@@ -211,11 +211,11 @@ def run_seed(
                 continue
             m = object_metrics(ident, truth["slit"], truth["object"], snr)
             o, b = m["object"], m["backdrop"]
-            rows.append((method, o, b))
+            rows.append((label, o, b))
             seen = truth["object"] & (snr >= RESOLVABLE_SNR)
             lost: Counter = Counter()  # the scene's, summed over the kinds of object
             for kind, mask in _kinds(truth, seen).items():
-                c = tally.setdefault(method, {}).setdefault(kind, Counter())
+                c = tally.setdefault(label, {}).setdefault(kind, Counter())
                 got = coverage_losses(ident, truth["slit"], mask=mask, counts=True)
                 c.update(got)
                 c["n"] += sum(got.values())

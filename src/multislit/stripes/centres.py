@@ -544,16 +544,13 @@ def find_ridge_centres_validated(
 def _exact_threshold(s: NDArray, threshold: float | F64) -> float | F64:
     """``threshold`` (a number, or an array of them) as the image's pixels are compared with
     it: floored for integer images, rounded to float32 for float32 ones."""
-    if np.ndim(threshold):
-        t = np.asarray(threshold, np.float64)
-        if np.issubdtype(s.dtype, np.integer):
-            return np.floor(t)
-        with np.errstate(over="ignore"):
-            return t.astype(np.float32).astype(np.float64)
+    t = np.asarray(threshold, np.float64)
     if np.issubdtype(s.dtype, np.integer):
-        return float(math.floor(threshold))
-    with np.errstate(over="ignore"):
-        return float(np.float32(threshold))
+        out = np.floor(t)
+    else:
+        with np.errstate(over="ignore"):
+            out = t.astype(np.float32).astype(np.float64)
+    return out if out.ndim else float(out)
 
 
 def _centres(
