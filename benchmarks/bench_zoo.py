@@ -85,7 +85,10 @@ def _rig_summary(cap: Capture) -> str:
 def _capture(folder: Path, seed: int, size: tuple[int, int], scenes: int) -> Capture:
     """The zoo capture of ``seed``: reused when ``folder`` holds it, else simulated there."""
     if (folder / "rig.json").is_file():
-        cap = Capture.open(folder)
+        try:
+            cap = Capture.open(folder)
+        except MultislitError as exc:
+            raise SystemExit(f"{exc}; remove {folder} to simulate it again") from None
         if len(cap.scans) == scenes:
             return cap
         raise SystemExit(f"{folder} holds another capture ({len(cap.scans)} scenes); remove it")
@@ -281,6 +284,8 @@ def main() -> None:
     seeds = (
         list(range(HELD_OUT_START, HELD_OUT_START + args.held_out)) if args.held_out else args.seeds
     )
+    if args.keep is not None and args.keep.exists() and not args.keep.is_dir():
+        ap.error(f"--keep: {args.keep} is not a folder")
     try:
         runs = _runs(args.method, args.confidence)
     except ValueError as exc:

@@ -32,3 +32,20 @@ def test_the_zoo_benchmark_refuses_a_confidence_out_of_range():
     last = run.stderr.strip().splitlines()[-1]
     assert "--confidence" in last and "[0, 1]" in last and "1.5" in last, run.stderr
     assert "Traceback" not in run.stderr
+
+
+@pytest.mark.slow  # a fresh interpreter
+def test_the_zoo_benchmark_refuses_a_file_to_keep_its_captures_in(tmp_path):
+    script = SCRIPTS[0].parent / "bench_zoo.py"
+    not_a_folder = tmp_path / "captures.txt"
+    not_a_folder.write_text("kept\n")
+    run = subprocess.run(
+        [sys.executable, str(script), "--keep", str(not_a_folder)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 2
+    assert "is not a folder" in run.stderr.strip().splitlines()[-1], run.stderr
+    assert "Traceback" not in run.stderr
+    assert not_a_folder.read_text() == "kept\n"
