@@ -8,10 +8,12 @@ The camera frame is OpenCV's: x right, y down, z forward; ``X_cam = R @ X_world 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import MultislitError
@@ -109,14 +111,19 @@ def _distort(xy: F64, dist: F64) -> F64:
     return np.stack([xd, yd], axis=1)
 
 
-def _undistort(xyd: F64, dist: F64, iterations: int = 20) -> F64:
-    """Invert :func:`_distort` by Newton's method (vectorised); exact to ~1e-12 for sane lenses."""
-    k1, k2, p1, p2, k3 = _coefficients(dist)
-    if not np.any(dist):
-        return xyd.copy()
-    xy = xyd.copy()
+#: Newton steps of the undistortion at most, and the step below which a point has converged.
+UNDISTORT_ITERATIONS = 20
+_UNDISTORT_TOL = 1e-14
+
+
+@njit(cache=True, inline="always")
+def undistort_point(xd, yd, k1, k2, p1, p2, k3, iterations):
+    """One distorted normalised point (``xd``, ``yd``) -> undistorted (x, y): :func:`_distort`
+    inverted by Newton's method, at most ``iterations`` steps, until a step is below
+    :data:`_UNDISTORT_TOL` (exact to ~1e-12 for sane lenses). Compiled, for the kernels that
+    undistort point by point."""
+    x, y = xd, yd
     for _ in range(iterations):
-        x, y = xy[:, 0], xy[:, 1]
         r2 = x * x + y * y
         if k3:
             radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -124,20 +131,64 @@ def _undistort(xyd: F64, dist: F64, iterations: int = 20) -> F64:
         else:
             radial = 1 + k1 * r2 + k2 * r2 * r2
             drad = 2 * k1 + 4 * k2 * r2
-        fx = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xyd[:, 0]
-        fy = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - xyd[:, 1]
+        ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+        ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
         j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
         j12 = x * y * drad + 2 * p1 * x + 2 * p2 * y
-        j21 = x * y * drad + 2 * p1 * x + 2 * p2 * y
         j22 = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
-        det = j11 * j22 - j12 * j21
-        dx = (j22 * fx - j12 * fy) / det
-        dy = (-j21 * fx + j11 * fy) / det
-        xy[:, 0] -= dx
-        xy[:, 1] -= dy
-        if max(np.abs(dx).max(initial=0), np.abs(dy).max(initial=0)) < 1e-14:
+        det = j11 * j22 - j12 * j12
+        dx = (j22 * ex - j12 * ey) / det
+        dy = (-j12 * ex + j11 * ey) / det
+        x -= dx
+        y -= dy
+        if max(abs(dx), abs(dy)) < _UNDISTORT_TOL:
             break
-    return xy
+    return x, y
+
+
+@njit(cache=True)
+def _undistort_kernel(xyd, k1, k2, p1, p2, k3, iterations, out):
+    """:func:`undistort_point` of each row of ``xyd`` (N, 2) into ``out`` (N, 2)."""
+    for i in range(xyd.shape[0]):
+        out[i, 0], out[i, 1] = undistort_point(xyd[i, 0], xyd[i, 1], k1, k2, p1, p2, k3, iterations)
+
+
+@njit(cache=True, inline="always")
+def line_of_sight(u, v, fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, R):
+    """The unit direction (world frame) of the line of sight through pixel (``u``, ``v``) of a
+    pinhole camera (intrinsics ``fx`` .. ``cy``, distortion ``k1`` .. ``k3``, undistorted by
+    :func:`undistort_point` where ``distorted``; ``R`` (3, 3) world -> camera): R^T (x, y, 1),
+    normalised. Compiled, for the kernels that work point by point."""
+    x = (u - cx) / fx
+    y = (v - cy) / fy
+    if distorted:
+        x, y = undistort_point(x, y, k1, k2, p1, p2, k3, UNDISTORT_ITERATIONS)
+    d0 = x * R[0, 0] + y * R[1, 0] + R[2, 0]
+    d1 = x * R[0, 1] + y * R[1, 1] + R[2, 1]
+    d2 = x * R[0, 2] + y * R[1, 2] + R[2, 2]
+    dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return d0 / dl, d1 / dl, d2 / dl
+
+
+@njit(cache=True)
+def _rays_kernel(uv, fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, R, out):
+    """:func:`line_of_sight` of each row of ``uv`` (N, 2) px into ``out`` (N, 3)."""
+    for i in range(uv.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = line_of_sight(
+            uv[i, 0], uv[i, 1], fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, R
+        )
+
+
+def _undistort(xyd: F64, dist: F64, iterations: int = UNDISTORT_ITERATIONS) -> F64:
+    """Invert :func:`_distort` (N, 2) -> (N, 2), point by point (:func:`undistort_point`)."""
+    if not np.any(dist):
+        return xyd.copy()
+    k1, k2, p1, p2, k3 = (float(c) for c in _coefficients(dist))
+    out = np.empty_like(xyd, dtype=np.float64)
+    _undistort_kernel(
+        np.ascontiguousarray(xyd, np.float64), k1, k2, p1, p2, k3, int(iterations), out
+    )
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -264,10 +315,13 @@ class PinholeCamera:
         origins : (N, 3) float64, mm, world frame (the camera centre)
         directions : (N, 3) float64, unit, world frame
         """
-        xy = self.normalized(uv)
-        d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-        d = d_cam @ self._R  # R^T d for each row
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        p = as_points(uv, 2, "uv")
+        dist = self.dist_array
+        d = np.empty((len(p), 3))
+        _rays_kernel(
+            p, self.fx, self.fy, self.cx, self.cy, *(float(c) for c in _coefficients(dist)),
+            bool(np.any(dist)), np.ascontiguousarray(self._R, np.float64), d,
+        )  # fmt: skip
         return np.broadcast_to(self.centre, d.shape).copy(), d
 
     # -- serialisation

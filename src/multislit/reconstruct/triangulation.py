@@ -19,6 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from multislit.errors import MultislitError
 from multislit.geometry import Camera, PinholeCamera, as_points, intersect_rays_planes
+from multislit.geometry.camera import line_of_sight
 
 F64 = NDArray[np.float64]
 
@@ -171,12 +172,6 @@ def triangulate(
     return pts, valid
 
 
-#: Newton steps of the undistortion and the step below which it has converged (as
-#: :meth:`PinholeCamera.normalized`).
-_UNDISTORT_ITERATIONS = 20
-_UNDISTORT_TOL = 1e-14
-
-
 @njit(cache=True)
 def _pinhole_points(intr, dist, R, centre, planes, uv, slit, min_cos, pts, valid):
     """:meth:`PinholeCamera.rays` and :func:`intersect_rays_planes` point by point: ``intr``
@@ -193,38 +188,9 @@ def _pinhole_points(intr, dist, R, centre, planes, uv, slit, min_cos, pts, valid
         s = slit[i]
         if s < 0:
             continue
-        xd = (uv[i, 0] - cx) / fx
-        yd = (uv[i, 1] - cy) / fy
-        x, y = xd, yd
-        if distorted:
-            for _ in range(_UNDISTORT_ITERATIONS):
-                r2 = x * x + y * y
-                if k3:
-                    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                    drad = 2 * k1 + 4 * k2 * r2 + 6 * k3 * r2 * r2
-                else:
-                    radial = 1 + k1 * r2 + k2 * r2 * r2
-                    drad = 2 * k1 + 4 * k2 * r2
-                ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
-                ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
-                j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
-                j12 = x * y * drad + 2 * p1 * x + 2 * p2 * y
-                j22 = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
-                det = j11 * j22 - j12 * j12
-                dx = (j22 * ex - j12 * ey) / det
-                dy = (-j12 * ex + j11 * ey) / det
-                x -= dx
-                y -= dy
-                if max(abs(dx), abs(dy)) < _UNDISTORT_TOL:
-                    break
-        # direction R^T (x, y, 1), unit
-        d0 = x * R[0, 0] + y * R[1, 0] + R[2, 0]
-        d1 = x * R[0, 1] + y * R[1, 1] + R[2, 1]
-        d2 = x * R[0, 2] + y * R[1, 2] + R[2, 2]
-        dl = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        d0 /= dl
-        d1 /= dl
-        d2 /= dl
+        d0, d1, d2 = line_of_sight(
+            uv[i, 0], uv[i, 1], fx, fy, cx, cy, k1, k2, p1, p2, k3, distorted, R
+        )
         n0, n1, n2, n3 = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3]
         denom = n0 * d0 + n1 * d1 + n2 * d2
         num = -((n0 * centre[0] + n1 * centre[1] + n2 * centre[2]) + n3)
@@ -243,9 +209,10 @@ def _pinhole_points(intr, dist, R, centre, planes, uv, slit, min_cos, pts, valid
 
 
 def compile_kernels() -> None:
-    """Compile the triangulation's Numba kernel now: :func:`triangulate` with a pinhole
+    """Compile the triangulation's Numba kernels now: :func:`triangulate` with a pinhole
     camera (with and without lens distortion), a point in front of the camera and one left
-    out.
+    out, and the camera's undistortion (:meth:`PinholeCamera.rays`,
+    :meth:`PinholeCamera.normalized`).
 
     Numba compiles it on first use and caches the machine code on disk beside the package;
     :func:`multislit.compile_kernels` calls this with the other stages' warm-ups.
@@ -256,3 +223,5 @@ def compile_kernels() -> None:
     for dist in ((0.0, 0.0, 0.0, 0.0), (-0.1, 0.01, 0.0, 0.0, 0.001)):
         camera = PinholeCamera(1000.0, 1000.0, 640.0, 512.0, tvec=(0.0, 0.0, 500.0), dist=dist)
         triangulate(camera, planes, uv, slit)
+        camera.rays(uv)
+        camera.normalized(uv)
