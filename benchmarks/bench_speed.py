@@ -93,7 +93,7 @@ def frame(img, ref, cal, rig, template: bool = True) -> tuple[list[float], int]:
     t0 = time.perf_counter()
     ex = extract_slits(img, stripe_width_px=ref.stripe_width_px, dot_size_px=ref.dot_size_px)
     t1 = time.perf_counter()
-    ident = identify(img, ref, rig, extraction=ex)
+    ident = identify(img, ref, rig, extraction=ex, match_dots=False)
     t2 = time.perf_counter()
     u, _ = refine_centres(img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px)
     t3 = time.perf_counter()

@@ -271,6 +271,17 @@ def test_the_kernels_warm_up_frame_is_identified_by_the_geometry():
         assert ident.dots is not None and len(ident.dots) > 100
 
 
+
+def test_the_dots_are_matched_only_when_asked():
+    """``match_dots=False`` leaves the identification's dots out and changes no label."""
+    reference, images, rig = synthetic_rig()
+    with_dots = identify(images[0], reference, rig)
+    without = identify(images[0], reference, rig, match_dots=False)
+    assert with_dots.dots is not None and len(with_dots.dots) > 100
+    assert without.dots is None
+    np.testing.assert_array_equal(without.slit, with_dots.slit)
+    np.testing.assert_array_equal(without.confidence, with_dots.confidence)
+
 def test_two_stripes_side_by_side_couple_once_however_long():
     """Four windows of a stripe (continuing one another) beside four of a stripe the dots
     put at slit 1: each window's own dots say 2 nats for slit 5. Coupled gap by gap, the

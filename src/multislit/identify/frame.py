@@ -26,6 +26,7 @@ def identify(
     options: IdentifyOptions | None = None,
     extraction: SlitExtraction | None = None,
     previous: Identification | None = None,
+    match_dots: bool = True,
 ) -> Identification:
     """Find the slits in one image and give each stripe-centre point its slit number.
 
@@ -44,6 +45,10 @@ def identify(
         checks its labels instead of searching every slit (see
         :func:`~multislit.identify.labelling.identify_template`); the geometry method takes
         none (it scores every slit of every frame) and raises if given one
+    match_dots : the geometry method also pairs the observed dots beside the labelled pieces
+        with the projector's rays (:attr:`Identification.dots`, what the dots are measured
+        from as 3D points); False leaves ``dots`` None and saves that work (a scan that
+        measures no dot points)
 
     Returns
     -------
@@ -94,7 +99,7 @@ def identify(
     )
     if opts.depth_range is not None:
         rig = rig.with_depth_range(opts.depth_range)
-    return identify_geometry(ex, reference, rig, opts)
+    return identify_geometry(ex, reference, rig, opts, match_dots=match_dots)
 
 
 def synthetic_rig() -> tuple[ReferenceSet, list, RigGeometry]:

@@ -135,7 +135,11 @@ def _empty(ex: SlitExtraction, message: str) -> Identification:
 
 
 def identify_geometry(
-    ex: SlitExtraction, reference: ReferenceSet, rig: RigGeometry, options: IdentifyOptions
+    ex: SlitExtraction,
+    reference: ReferenceSet,
+    rig: RigGeometry,
+    options: IdentifyOptions,
+    match_dots: bool = True,
 ) -> Identification:
     """Label the stripe points of an extraction by the dots' geometry (see the module).
 
@@ -145,6 +149,8 @@ def identify_geometry(
     reference : the rig's prepared reference (its slit spacing)
     rig : the calibrated rig (:func:`~multislit.identify.rig.rig_geometry`)
     options : the identification's options (``min_confidence``)
+    match_dots : also pair the observed dots beside the labelled windows with the projector's
+        rays (:func:`~multislit.identify.evidence.dot_matches`); False: ``dots`` is None
 
     Returns
     -------
@@ -255,19 +261,21 @@ def identify_geometry(
     pieces, dropped = _piece_labels(
         scores, piece_of_window, label, lab.confidence, options.confidence, why
     )
-    lw = np.flatnonzero(label >= 0)
-    dots = dot_matches(
-        rig,
-        rays,
-        win.order,
-        win.start,
-        frame,
-        lw,
-        label[lw],
-        ev.slope[lw, label[lw]].astype(np.float64),
-        lab.confidence[lw],
-        w_dir,
-    )
+    dots = None
+    if match_dots:
+        lw = np.flatnonzero(label >= 0)
+        dots = dot_matches(
+            rig,
+            rays,
+            win.order,
+            win.start,
+            frame,
+            lw,
+            label[lw],
+            ev.slope[lw, label[lw]].astype(np.float64),
+            lab.confidence[lw],
+            w_dir,
+        )
     slit = np.full(k, -1, np.int64)
     conf = np.zeros(k)
     has = window >= 0

@@ -92,7 +92,8 @@ class Identification:
         template method)
     method : "geometry" (the dots' geometry) or "template" (the paper's template matching)
     dots : the observed dots identified as rays of the dot projector by the labelled pieces
-        (geometry only; None for the template method)
+        (geometry only; None for the template method and where not asked for:
+        ``identify(..., match_dots=False)``)
     """
 
     u: F64

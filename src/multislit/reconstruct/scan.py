@@ -527,7 +527,15 @@ def _scan(
         **ex_opts.kwargs(),
         background=background,
     )
-    ident = identify(image, reference, rig, options=id_opts, extraction=extraction, previous=prior)
+    ident = identify(
+        image,
+        reference,
+        rig,
+        options=id_opts,
+        extraction=extraction,
+        previous=prior,
+        match_dots=opts.refinement.dot_points,
+    )
     m = ident.slit >= 0
     problem = _not_a_scan(ident)
     if problem:
