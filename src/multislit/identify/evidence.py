@@ -39,7 +39,6 @@ import cv2
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from multislit._groups import group_medians
 from multislit.identify.launch import launch
@@ -54,6 +53,7 @@ from multislit.stripes.dots import (
     dots_off_stripes,
     find_dots,
     near_stripes,
+    point_grid,
     z_many,
 )
 from multislit.stripes.separation import saturation_level_of
@@ -183,19 +183,19 @@ def false_match_map(
     """
     h, w = near_zone.shape
     hb, wb = -(-h // BLOCK_PX), -(-w // BLOCK_PX)
-    pad = np.zeros((hb * BLOCK_PX, wb * BLOCK_PX), np.float32)
-    pad[:h, :w] = near_zone
-    # the blocks' sums: their means (OpenCV's area resampling) times their size
-    near_area = cv2.resize(pad, (wb, hb), interpolation=cv2.INTER_AREA) * np.float32(BLOCK_PX**2)
-    pad[:h, :w] = ~near_zone
-    clear_area = cv2.resize(pad, (wb, hb), interpolation=cv2.INTER_AREA) * np.float32(BLOCK_PX**2)
-    r = np.clip(dots.v.astype(np.intp) // BLOCK_PX, 0, hb - 1)
-    c = np.clip(dots.u.astype(np.intp) // BLOCK_PX, 0, wb - 1)
+    # the blocks' pixels near a stripe, and clear of the stripes (those in the image)
+    near_area = np.empty((hb, wb), np.float32)
+    _block_counts(np.asarray(near_zone).view(np.uint8), BLOCK_PX, near_area)
+    inside = np.minimum(h - BLOCK_PX * np.arange(hb), BLOCK_PX)[:, None] * np.minimum(
+        w - BLOCK_PX * np.arange(wb), BLOCK_PX
+    )
+    clear_area = inside.astype(np.float32) - near_area
+    at = (np.clip(dots.v.astype(np.intp) // BLOCK_PX, 0, hb - 1) * wb
+          + np.clip(dots.u.astype(np.intp) // BLOCK_PX, 0, wb - 1))  # fmt: skip
     k = 2 * max(1, int(round(radius_px / BLOCK_PX))) + 1
     out = np.empty((2, hb, wb), np.float32)
     for z, area0, sel in ((0, clear_area, ~near), (1, near_area, near)):
-        cnt = np.zeros((hb, wb), np.float32)
-        np.add.at(cnt, (r[sel], c[sel]), 1.0)
+        cnt = np.bincount(at[sel], minlength=hb * wb).astype(np.float32).reshape(hb, wb)
         n = cv2.boxFilter(cnt, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
         area = cv2.boxFilter(area0, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
         rho0 = np.count_nonzero(sel) / max(float(area0.sum()), 1.0)
@@ -204,20 +204,32 @@ def false_match_map(
     return np.clip(out, _MIN_P_FALSE, 0.5)
 
 
+@njit(cache=True)
+def _block_counts(zone, block, out):
+    """The pixels set in ``zone`` (H, W) uint8 (0 or 1) per block of ``block`` x ``block`` px
+    into ``out`` (ceil(H / block), ceil(W / block)): each block's rows summed first (whole rows
+    at a time, which the compiler vectorises), then their columns."""
+    h, w = zone.shape
+    acc = np.zeros(w, np.int32)
+    for br in range(out.shape[0]):
+        acc[:] = 0
+        for r in range(br * block, min((br + 1) * block, h)):
+            row = zone[r]
+            for c in range(w):
+                acc[c] += row[c]
+        for bc in range(out.shape[1]):
+            t = 0
+            for c in range(bc * block, min((bc + 1) * block, w)):
+                t += acc[c]
+            out[br, bc] = t
+
+
 def dot_grid(
     dots: DotCentres, shape: tuple[int, int], cell: float = _CELL
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], int, int]:
     """The observed dots in a grid of ``cell`` px: (order (M,), cell_start (C+1,), nx, ny):
     the dots of cell (cy, cx) are ``order[cell_start[cy*nx+cx]:cell_start[cy*nx+cx+1]]``."""
-    h, w = shape
-    nx, ny = int(math.ceil(w / cell)), int(math.ceil(h / cell))
-    cx = np.clip((dots.u / cell).astype(np.intp), 0, nx - 1)
-    cy = np.clip((dots.v / cell).astype(np.intp), 0, ny - 1)
-    key = cy * nx + cx
-    order = np.argsort(key, kind="stable").astype(np.intp)
-    start = np.zeros(nx * ny + 1, np.intp)
-    np.cumsum(np.bincount(key, minlength=nx * ny), out=start[1:])
-    return order, start, nx, ny
+    return point_grid(dots.u, dots.v, shape, cell)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1246,9 +1258,12 @@ def _dot_brightness(ex, dots: DotCentres, response: DotResponse, spacing_px: flo
     step = max(1, len(dots) // _BRIGHTNESS_SAMPLE)
     u, v = dots.u[::step], dots.v[::step]
     centre = np.arange(0, len(ex.u), 4)
-    tree = cKDTree(np.stack([ex.u[centre], ex.v[centre]], axis=1))
-    d, i = tree.query(np.stack([u, v], axis=1), distance_upper_bound=max(float(spacing_px), 1.0))
-    ok = np.isfinite(d)
+    cu, cv = ex.u[centre], ex.v[centre]
+    tol = max(float(spacing_px), 1.0)
+    g_order, g_start, gnx, gny = point_grid(cu, cv, ex.dots.shape, tol)
+    i = np.empty(len(u), np.intp)
+    _nearest_each(u, v, tol, cu, cv, g_order, g_start, gnx, gny, tol, i)
+    ok = i >= 0
     if not ok.any():
         return 1.0
     i = centre[i[ok]]
@@ -1277,6 +1292,13 @@ def _nearest_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell):
                     bd = d
                     best = o
     return best
+
+
+@njit(cache=True)
+def _nearest_each(u, v, tol, ou, ov, g_order, g_start, gnx, gny, cell, out):
+    """:func:`_nearest_at` of every place (``u``, ``v``) (M,) into ``out`` (M,)."""
+    for i in range(u.shape[0]):
+        out[i] = _nearest_at(u[i], v[i], tol, ou, ov, g_order, g_start, gnx, gny, cell)
 
 
 @njit(cache=True)

@@ -36,9 +36,9 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from multislit._groups import group_medians
 from multislit.stripes.separation import saturation_level_of
 from multislit.stripes.sizes import FWHM_PER_SIGMA
+from multislit.stripes.slope import _gaussian_taps
 from multislit.stripes.validation import SlitExtractionError
 
 if TYPE_CHECKING:
@@ -126,34 +126,117 @@ def find_dots(
     if not (math.isfinite(k_sigma) and k_sigma >= 0):
         raise SlitExtractionError(f"k_sigma must be >= 0, got {k_sigma!r}")
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
-    s = cv2.GaussianBlur(d.astype(np.float32, copy=False), (0, 0), sigma)
+    s = gaussian_f32(d, sigma)
     thr = k_sigma * smoothed_noise(noise_sigma, sigma)
-    peak = (s >= cv2.dilate(s, np.ones((3, 3), np.uint8))) & (s > thr)
-    peak[0, :] = peak[-1, :] = False
-    peak[:, 0] = peak[:, -1] = False
-    at = cv2.findNonZero(peak.view(np.uint8))  # (x, y), in the order of the rows
-    at = np.zeros((0, 2), np.intp) if at is None else at.reshape(-1, 2).astype(np.intp)
-    r, c = at[:, 1], at[:, 0]
-    if r.size == 0:
-        e = np.zeros(0)
-        return DotCentres(e, e.copy(), e.copy())
     floor = 1e-3 * float(thr) if thr > 0 else 1e-6
-    lc = np.log(np.maximum(s[r, c], floor))
-    du = _log_parabola(
-        np.log(np.maximum(s[r, c - 1], floor)), lc, np.log(np.maximum(s[r, c + 1], floor))
-    )
-    dv = _log_parabola(
-        np.log(np.maximum(s[r - 1, c], floor)), lc, np.log(np.maximum(s[r + 1, c], floor))
-    )
-    return DotCentres(c + du, r + dv, s[r, c].astype(np.float64))
+    cap = _PEAKS_FIRST
+    while True:
+        u, v, peak = np.empty(cap), np.empty(cap), np.empty(cap)
+        n = _local_maxima(s, np.float32(thr), floor, u, v, peak)
+        if n <= cap:
+            return DotCentres(u[:n], v[:n], peak[:n])
+        cap = n
 
 
-def _log_parabola(a: F64, b: F64, c: F64) -> F64:
-    """Offset (-0.5..0.5) of the vertex of the parabola through (-1, a), (0, b), (1, c)."""
+#: :func:`find_dots` makes room for this many dots first (more: it runs again with room for all).
+_PEAKS_FIRST = 1 << 14
+
+
+def gaussian_f32(img: NDArray, sigma: float) -> F32:
+    """(H, W) float32: ``img`` (H, W) smoothed by a Gaussian of ``sigma`` px as
+    ``cv2.GaussianBlur`` smooths it as float32 (its kernel, its border); 8- and 16-bit data are
+    filtered straight into float32, without a float copy of the image first."""
+    if img.dtype in (np.uint8, np.uint16):
+        g = _gaussian_taps(sigma)
+        return cv2.sepFilter2D(img, cv2.CV_32F, g, g)
+    return cv2.GaussianBlur(img.astype(np.float32, copy=False), (0, 0), sigma)
+
+
+def nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
+    """NaN into ``out`` (H, W) at the pixels within the disc of ``radius`` px (OpenCV's
+    elliptic structuring element) of every pixel of ``img`` (H, W) at or above ``level`` (None:
+    none): a smoothing of ``img`` does not show a dot there."""
+    if level is None:
+        return
+    clipped = cv2.compare(img, float(level), cv2.CMP_GE)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    _nan_around(clipped, disc, out)
+
+
+@njit(cache=True)
+def _nan_around(mask, disc, out):
+    """NaN into ``out`` (H, W) at the offsets where ``disc`` (2R+1, 2R+1) is set around every
+    pixel set in ``mask`` (H, W) uint8; the rows without any are passed over in one vectorised
+    test each."""
+    h, w = mask.shape
+    rad = disc.shape[0] // 2
+    for r in range(h):
+        row = mask[r]
+        any_set = np.uint8(0)
+        for c in range(w):
+            any_set |= row[c]
+        if any_set == 0:
+            continue
+        for c in range(w):
+            if row[c] == 0:
+                continue
+            for dr in range(-rad, rad + 1):
+                if 0 <= r + dr < h:
+                    for dc in range(-rad, rad + 1):
+                        if disc[dr + rad, dc + rad] and 0 <= c + dc < w:
+                            out[r + dr, c + dc] = np.nan
+
+
+@njit(cache=True)
+def _local_maxima(s, thr, floor, u, v, peak):
+    """The local maxima of ``s`` (H, W) above ``thr`` (at least each of their 8 neighbours; not
+    on the image's edge), row by row: their centres (:func:`_log_vertex` along each axis, the
+    values taken as at least ``floor``) into ``u``, ``v`` and ``s`` there into ``peak`` (C,)
+    each; returns how many there are (more than C: the first C written). Each row's maxima are
+    marked first in a loop without branches, which the compiler vectorises."""
+    h, w = s.shape
+    cap = u.shape[0]
+    nw = (w + 7) // 8
+    mark = np.zeros(8 * nw, np.uint8)
+    words = mark.view(np.uint64)  # the marks 8 at a time: the rows' empty stretches skipped
+    n = 0
+    for r in range(1, h - 1):
+        up, row, down = s[r - 1], s[r], s[r + 1]
+        for c in range(1, w - 1):
+            x = row[c]
+            mark[c] = (
+                (x > thr) & (x >= row[c - 1]) & (x >= row[c + 1]) & (x >= up[c - 1])
+                & (x >= up[c]) & (x >= up[c + 1]) & (x >= down[c - 1]) & (x >= down[c])
+                & (x >= down[c + 1])
+            )  # fmt: skip
+        for k in range(nw):
+            if words[k] == 0:
+                continue
+            for c in range(8 * k, 8 * k + 8):
+                if mark[c] == 0:
+                    continue
+                if n < cap:
+                    x = row[c]
+                    lc = math.log(max(x, floor))
+                    u[n] = c + _log_vertex(
+                        math.log(max(row[c - 1], floor)), lc, math.log(max(row[c + 1], floor))
+                    )
+                    v[n] = r + _log_vertex(
+                        math.log(max(up[c], floor)), lc, math.log(max(down[c], floor))
+                    )
+                    peak[n] = x
+                n += 1
+    return n
+
+
+@njit(cache=True, inline="always")
+def _log_vertex(a, b, c):
+    """Offset (-0.5..0.5) of the vertex of the parabola through (-1, a), (0, b), (1, c); 0 where
+    it opens upwards."""
     den = a - 2.0 * b + c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = np.where(den < 0, 0.5 * (a - c) / den, 0.0)
-    return np.clip(off, -0.5, 0.5)
+    if not den < 0.0:
+        return 0.0
+    return min(max(0.5 * (a - c) / den, -0.5), 0.5)
 
 
 def near_stripes(u: F64, v: F64, shape: tuple[int, int], radius_px: float) -> NDArray[np.bool_]:
@@ -175,25 +258,63 @@ def near_stripes(u: F64, v: F64, shape: tuple[int, int], radius_px: float) -> ND
     return cv2.dilate(marks, ball) > 0
 
 
-def _stripe_peak_at(
-    r: NDArray[np.intp], c: NDArray[np.intp], u: F64, v: F64, peak: F64, shape: tuple[int, int],
-    radius_px: float,
-) -> NDArray[np.float32]:  # fmt: skip
-    """(M,) float32: the largest stripe peak (``peak`` (K,) at the centres ``u``, ``v``) within
-    the disc of ``radius_px`` (OpenCV's elliptic structuring element) of each pixel (``r``,
-    ``c``) (M,); 0 farther from every stripe."""
+def point_grid(
+    u: F64, v: F64, shape: tuple[int, int], cell: float
+) -> tuple[NDArray[np.intp], NDArray[np.intp], int, int]:
+    """Points (``u``, ``v`` (M,) px) in a grid of ``cell`` px over an image of ``shape`` (H, W):
+    (order (M,), cell_start (C+1,), nx, ny): the points of cell (cy, cx) are
+    ``order[cell_start[cy*nx+cx]:cell_start[cy*nx+cx+1]]`` (those outside the image in the
+    cells at its edges)."""
     h, w = shape
-    rad = max(1, int(math.ceil(radius_px)))
-    # the centres' peaks on the image padded by the reach (nothing beyond the image)
-    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1) + rad
-    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1) + rad
-    pk = np.zeros((h + 2 * rad, w + 2 * rad), np.float32)
-    np.maximum.at(pk, (pr, pc), np.asarray(peak, np.float32))
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-    out = np.zeros(len(r), np.float32)
-    for dr, dc in zip(*np.nonzero(k), strict=True):  # cv2.dilate's offsets
-        np.maximum(out, pk[r + dr, c + dc], out=out)
-    return out
+    nx, ny = max(1, math.ceil(w / cell)), max(1, math.ceil(h / cell))
+    order = np.empty(len(u), np.intp)
+    start = np.zeros(nx * ny + 1, np.intp)
+    _bucket(np.asarray(u, np.float64), np.asarray(v, np.float64), float(cell), nx, ny, order, start)
+    return order, start, nx, ny
+
+
+@njit(cache=True)
+def _bucket(u, v, cell, nx, ny, order, start):
+    """:func:`point_grid`'s cells, by a counting sort (the points of a cell in their order):
+    ``order`` (M,) and ``start`` (C + 1,), zero on entry."""
+    n = u.shape[0]
+    key = np.empty(n, np.intp)
+    for i in range(n):
+        cx = min(max(int(u[i] / cell), 0), nx - 1)
+        cy = min(max(int(v[i] / cell), 0), ny - 1)
+        key[i] = cy * nx + cx
+        start[key[i] + 1] += 1
+    for g in range(nx * ny):
+        start[g + 1] += start[g]
+    fill = start[:-1].copy()
+    for i in range(n):
+        order[fill[key[i]]] = i
+        fill[key[i]] += 1
+
+
+@njit(cache=True)
+def _stripe_peak_at(r, c, pr, pc, peak, disc, order, start, nx, ny, cell, out):
+    """Per pixel (``r``, ``c``) (M,): the largest stripe ``peak`` (K,) whose centre's pixel
+    (``pr``, ``pc``) (K,) lies at an offset where ``disc`` (2R+1, 2R+1) is set, into ``out``
+    (M,) (0 where none does); the centres' pixels in the grid (``order``, ``start``, ``nx``,
+    ``ny``) of ``cell`` px (:func:`point_grid`)."""
+    rad = disc.shape[0] // 2
+    for i in range(r.shape[0]):
+        best = 0.0
+        cx0 = max(0, int((c[i] - rad) / cell))
+        cx1 = min(nx - 1, int((c[i] + rad) / cell))
+        cy0 = max(0, int((r[i] - rad) / cell))
+        cy1 = min(ny - 1, int((r[i] + rad) / cell))
+        for cy in range(cy0, cy1 + 1):
+            for cx in range(cx0, cx1 + 1):
+                g = cy * nx + cx
+                for e in range(start[g], start[g + 1]):
+                    k = order[e]
+                    dr = pr[k] - r[i]
+                    dc = pc[k] - c[i]
+                    if abs(dr) <= rad and abs(dc) <= rad and disc[dr + rad, dc + rad]:
+                        best = max(best, peak[k])
+        out[i] = best
 
 
 def dots_off_stripes(
@@ -221,12 +342,21 @@ def dots_off_stripes(
     r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
     c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
     near = near_zone[r, c]
-    sp = _stripe_peak_at(r[near], c[near], u, v, peak, (h, w), clearance_px)
+    # the stripe centres' pixels, in a grid of cells about the disc's size
+    rad = max(1, int(math.ceil(clearance_px)))
+    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
+    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1)
+    cell = float(2 * rad + 1)
+    order, start, nx, ny = point_grid(pc, pr, (h, w), cell)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    sp = np.zeros(int(np.count_nonzero(near)))
+    _stripe_peak_at(r[near], c[near], pr, pc, np.asarray(peak, np.float64), disc, order, start,
+                    nx, ny, cell, sp)  # fmt: skip
     return _speckle_free(dots, near, sp, min_ratio)
 
 
 def _speckle_free(
-    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: NDArray[np.float32], min_ratio: float
+    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: F64, min_ratio: float
 ) -> tuple[DotCentres, NDArray[np.bool_]]:
     """The dots kept (those not ``near`` (M,) a stripe, and those whose peak reaches
     ``min_ratio`` of the stripe's peak beside them, ``stripe_peak`` (count of near,)) and
@@ -381,6 +511,45 @@ class DotResponse:
         return out
 
 
+def _level_bins(x: F64, level: F64, bins: int) -> tuple[F64, F64, F64]:
+    """Values ``x`` (M,) in ``bins`` bins of equal counts by their ``level`` (M,).
+
+    Returns
+    -------
+    edges : (bins + 1,) float64, the levels' quantiles (linear between the sorted levels), the
+        first -inf and the last +inf: a value lies in bin j where ``edges[j] <= level <
+        edges[j + 1]``
+    med, mad : (bins,) float64, each bin's median of ``x`` and median absolute deviation from
+        it (NaN: an empty bin)
+    """
+    o = np.argsort(level)
+    lv = level[o]
+    pos = (len(lv) - 1) * np.linspace(0.0, 1.0, bins + 1)
+    lo = pos.astype(np.intp)
+    hi = np.minimum(lo + 1, len(lv) - 1)
+    edges = lv[lo] + (pos - lo) * (lv[hi] - lv[lo])
+    edges[0], edges[-1] = -np.inf, np.inf
+    # the levels sorted, each bin is a run of them
+    med = np.empty(bins)
+    mad = np.empty(bins)
+    _run_medians(x[o], np.searchsorted(lv, edges, side="left"), med, mad)
+    return edges, med, mad
+
+
+@njit(cache=True)
+def _run_medians(x, start, med, mad):
+    """The median of each run ``x[start[j]:start[j + 1]]`` and the median absolute deviation
+    from it into ``med``, ``mad`` (J,) (NaN: an empty run)."""
+    for j in range(med.shape[0]):
+        a, b = start[j], start[j + 1]
+        if b <= a:
+            med[j] = mad[j] = np.nan
+            continue
+        m = np.median(x[a:b])
+        med[j] = m
+        mad[j] = np.median(np.abs(x[a:b] - m))
+
+
 def places_beside_stripes(
     u: F64, v: F64, angle: F64, spread_px: float, n: int, seed: int = 0
 ) -> tuple[F64, F64, F64]:
@@ -439,14 +608,9 @@ def dot_response(
     img = np.asarray(plane)
     h, w = img.shape
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
-    sm = cv2.GaussianBlur(img.astype(np.float32, copy=False), (0, 0), sigma)
+    sm = gaussian_f32(img, sigma)
     reach = RESPONSE_REACH * sigma + 1.0
-    if saturation_level is not None:
-        clipped = (img >= saturation_level).astype(np.uint8)
-        if clipped.any():
-            rad = int(math.ceil(2.0 * sigma))
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-            sm[cv2.dilate(clipped, k) > 0] = np.nan
+    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
     # the noise, beside the stripes
     pu, pv, a = places_beside_stripes(u, v, angle, spread_px, _NOISE_SAMPLES)
     su, sv = np.sin(a), np.cos(a)
@@ -471,11 +635,7 @@ def dot_response(
             edges[z] = np.linspace(0.0, 1.0, _NOISE_BINS + 1)
             sig[z] = fallback
             continue
-        e = np.quantile(lv, np.linspace(0.0, 1.0, _NOISE_BINS + 1))
-        e[0], e[-1] = -np.inf, np.inf
-        b = np.clip(np.searchsorted(e, lv, side="right") - 1, 0, _NOISE_BINS - 1)
-        med = group_medians(x, b, _NOISE_BINS)
-        mad = group_medians(np.abs(x - med[b]), b, _NOISE_BINS)
+        e, med, mad = _level_bins(x, lv, _NOISE_BINS)
         has = np.isfinite(med)  # the bins without places keep offset 0 and sigma 1
         offset[z, has] = med[has]
         sig[z, has] = 1.4826 * mad[has]
@@ -565,13 +725,8 @@ def sharp_image(plane: ArrayLike, saturation_level: float | None = None) -> F32:
     """(H, W) float32: the image plane smoothed by a Gaussian of :data:`SHARP_SIGMA` px, NaN
     within a pixel or two of the pixels at or above ``saturation_level`` (None: none)."""
     img = np.asarray(plane)
-    sharp = cv2.GaussianBlur(img.astype(np.float32), (0, 0), SHARP_SIGMA)
-    if saturation_level is not None:
-        clipped = (img >= saturation_level).astype(np.uint8)
-        if clipped.any():
-            rad = int(math.ceil(2.0 * SHARP_SIGMA)) + 1
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-            sharp[cv2.dilate(clipped, k) > 0] = np.nan
+    sharp = gaussian_f32(img, SHARP_SIGMA)
+    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * SHARP_SIGMA)) + 1, sharp)
     return sharp
 
 

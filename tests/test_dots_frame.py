@@ -1,0 +1,157 @@
+"""The frame's dots' compiled pieces against the whole-image definitions they stand for."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from multislit.identify.evidence import BLOCK_PX, _block_counts
+from multislit.stripes.dots import (
+    DotCentres,
+    _level_bins,
+    dots_off_stripes,
+    find_dots,
+    gaussian_f32,
+    nan_near_clipped,
+    near_stripes,
+    point_grid,
+)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+@pytest.mark.parametrize("sigma", [0.5, 0.89, 1.7])
+def test_gaussian_f32_is_opencvs_float32_blur(dtype, sigma):
+    rng = np.random.default_rng(1)
+    top = 255 if dtype == np.uint8 else 4095
+    img = rng.integers(0, top + 1, (37, 53)).astype(dtype)
+    want = cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma)
+    got = gaussian_f32(img, sigma)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * top)
+
+
+def test_find_dots_takes_every_local_maximum_above_the_threshold():
+    """The dots are the pixels of the smoothed image at least as high as their 8 neighbours and
+    above the threshold (off the image's edge), centred by the parabola through the logarithms
+    of their neighbours: checked on noise, where maxima touch and plateaus occur."""
+    rng = np.random.default_rng(4)
+    img = np.round(rng.gamma(0.6, 3.0, (90, 120))).astype(np.float32)
+    noise, size, k = 1.0, 2.1, 4.0
+    dots = find_dots(img, noise, size, k_sigma=k)
+    sigma = size / 2.3548200450309493
+    s = cv2.GaussianBlur(img, (0, 0), sigma)
+    thr = np.float32(k * noise / (2.0 * math.sqrt(math.pi) * sigma))
+    peak = (s >= cv2.dilate(s, np.ones((3, 3), np.uint8))) & (s > thr)
+    peak[0, :] = peak[-1, :] = peak[:, 0] = peak[:, -1] = False
+    r, c = np.nonzero(peak)  # row by row, as the dots come
+    assert len(r) > 50
+    np.testing.assert_array_equal(np.rint(dots.v), r)
+    np.testing.assert_array_equal(np.floor(dots.u + 0.5), c)
+    np.testing.assert_array_equal(dots.peak, s[r, c])
+    lg = np.log(np.maximum(s.astype(np.float64), 1e-3 * float(thr)))
+
+    def vertex(a, b, c_):
+        den = a - 2.0 * b + c_
+        off = np.where(den < 0, 0.5 * (a - c_) / np.where(den < 0, den, -1.0), 0.0)
+        return np.clip(off, -0.5, 0.5)
+
+    np.testing.assert_allclose(dots.u - c, vertex(lg[r, c - 1], lg[r, c], lg[r, c + 1]), atol=1e-9)
+    np.testing.assert_allclose(dots.v - r, vertex(lg[r - 1, c], lg[r, c], lg[r + 1, c]), atol=1e-9)
+
+
+def test_find_dots_finds_more_dots_than_it_first_makes_room_for():
+    img = np.zeros((300, 600), np.float32)
+    img[2:-2:3, 2:-2:3] = 50.0  # 99 x 199 separate peaks
+    dots = find_dots(img, 1.0, 0.6)
+    assert len(dots) == 99 * 199 > 1 << 14
+    np.testing.assert_allclose(dots.u[:3], [2.0, 5.0, 8.0], atol=1e-3)
+
+
+@pytest.mark.parametrize("cell", [1.0, 4.0, 7.5])
+def test_point_grid_lists_each_point_once_in_its_cell(cell):
+    rng = np.random.default_rng(5)
+    u = rng.uniform(-3.0, 63.0, 400)
+    v = rng.uniform(-3.0, 43.0, 400)
+    order, start, nx, ny = point_grid(u, v, (40, 60), cell)
+    assert (nx, ny) == (math.ceil(60 / cell), math.ceil(40 / cell))
+    assert start[0] == 0 and start[-1] == 400
+    np.testing.assert_array_equal(np.sort(order), np.arange(400))
+    cx = np.clip((u / cell).astype(int), 0, nx - 1)
+    cy = np.clip((v / cell).astype(int), 0, ny - 1)
+    for g in range(nx * ny):
+        members = order[start[g] : start[g + 1]]
+        np.testing.assert_array_equal(members, np.flatnonzero(cy * nx + cx == g))
+
+
+@pytest.mark.parametrize("clearance", [1.0, 2.96, 4.5])
+def test_speckle_is_judged_by_the_stripe_peaks_in_the_disc(clearance):
+    """A dot near a stripe is compared with the largest stripe peak whose centre's pixel lies
+    in the disc (OpenCV's elliptic element) of the clearance around the dot's pixel."""
+    rng = np.random.default_rng(6)
+    shape = (50, 70)
+    u, v = rng.uniform(0, 69, 300), rng.uniform(0, 49, 300)
+    peak = rng.uniform(10.0, 100.0, 300)
+    zone = near_stripes(u, v, shape, clearance)
+    dots = DotCentres(rng.uniform(0, 69, 500), rng.uniform(0, 49, 500), rng.uniform(0, 40, 500))
+    kept, near = dots_off_stripes(dots, zone, u, v, peak, clearance, 0.2)
+    # the definition: the stripes' peaks spread by a dilation with the disc
+    rad = max(1, math.ceil(clearance))
+    pk = np.zeros(shape, np.float32)
+    np.maximum.at(pk, (np.rint(v).astype(int), np.rint(u).astype(int)), peak.astype(np.float32))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    spread = cv2.dilate(pk, disc, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    r = np.clip(np.rint(dots.v).astype(int), 0, 49)
+    c = np.clip(np.rint(dots.u).astype(int), 0, 69)
+    is_near = zone[r, c]
+    keep = ~is_near | (dots.peak >= 0.2 * spread[r, c])
+    assert 0 < np.count_nonzero(is_near & ~keep) and np.count_nonzero(is_near & keep) > 0
+    np.testing.assert_array_equal(kept.u, dots.u[keep])
+    np.testing.assert_array_equal(near, is_near[keep])
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float64])
+def test_nan_near_clipped_is_the_dilated_clipped_pixels(dtype):
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 200, (40, 50)).astype(dtype)
+    img[0, 0] = img[39, 25] = img[17, 49] = img[20, 20] = img[21, 22] = 250
+    for radius in (1, 2, 3):
+        out = np.zeros(img.shape, np.float32)
+        nan_near_clipped(img, 249.5, radius, out)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        want = cv2.dilate((img >= 249.5).astype(np.uint8), disc) > 0
+        np.testing.assert_array_equal(np.isnan(out), want)
+    out = np.zeros(img.shape, np.float32)
+    nan_near_clipped(img, None, 2, out)
+    assert not np.isnan(out).any()
+
+
+def test_level_bins_are_the_quantile_bins_and_their_medians():
+    rng = np.random.default_rng(8)
+    level = rng.gamma(2.0, 30.0, 3001)
+    x = rng.normal(0.0, 1.0 + level / 50.0)
+    edges, med, mad = _level_bins(x, level, 12)
+    want = np.quantile(level, np.linspace(0.0, 1.0, 13))
+    np.testing.assert_allclose(edges[1:-1], want[1:-1], rtol=1e-12)
+    assert edges[0] == -np.inf and edges[-1] == np.inf
+    b = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, 11)
+    for j in range(12):
+        m = np.median(x[b == j])
+        assert med[j] == pytest.approx(m, abs=1e-12)
+        assert mad[j] == pytest.approx(np.median(np.abs(x[b == j] - m)), abs=1e-12)
+    assert mad[-1] > 1.5 * mad[0]  # the noise grows with the level
+
+
+@pytest.mark.parametrize("shape", [(16, 20), (37, 53)])
+def test_block_counts_sum_each_block(shape):
+    rng = np.random.default_rng(9)
+    zone = (rng.random(shape) < 0.3).astype(np.uint8)
+    hb, wb = -(-shape[0] // BLOCK_PX), -(-shape[1] // BLOCK_PX)
+    out = np.full((hb, wb), -1.0, np.float32)
+    _block_counts(zone, BLOCK_PX, out)
+    pad = np.zeros((hb * BLOCK_PX, wb * BLOCK_PX), np.int64)
+    pad[: shape[0], : shape[1]] = zone
+    want = pad.reshape(hb, BLOCK_PX, wb, BLOCK_PX).sum(axis=(1, 3))
+    np.testing.assert_array_equal(out, want)
