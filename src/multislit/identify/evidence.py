@@ -35,7 +35,6 @@ import math
 from dataclasses import dataclass
 from functools import cached_property
 
-import cv2
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
@@ -182,34 +181,92 @@ def false_match_map(
     radius_px : px
     """
     h, w = near_zone.shape
-    hb, wb = -(-h // BLOCK_PX), -(-w // BLOCK_PX)
-    # the blocks' pixels near a stripe, and clear of the stripes (those in the image)
-    near_area = np.empty((hb, wb), np.float32)
-    _block_counts(np.asarray(near_zone).view(np.uint8), BLOCK_PX, near_area)
-    inside = np.minimum(h - BLOCK_PX * np.arange(hb), BLOCK_PX)[:, None] * np.minimum(
-        w - BLOCK_PX * np.arange(wb), BLOCK_PX
-    )
-    clear_area = inside.astype(np.float32) - near_area
-    at = (np.clip(dots.v.astype(np.intp) // BLOCK_PX, 0, hb - 1) * wb
-          + np.clip(dots.u.astype(np.intp) // BLOCK_PX, 0, wb - 1))  # fmt: skip
-    k = 2 * max(1, int(round(radius_px / BLOCK_PX))) + 1
-    out = np.empty((2, hb, wb), np.float32)
-    for z, area0, sel in ((0, clear_area, ~near), (1, near_area, near)):
-        cnt = np.bincount(at[sel], minlength=hb * wb).astype(np.float32).reshape(hb, wb)
-        n = cv2.boxFilter(cnt, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        area = cv2.boxFilter(area0, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        rho0 = np.count_nonzero(sel) / max(float(area0.sum()), 1.0)
-        rho = (n + np.float32(_PRIOR_AREA * rho0)) / (area + np.float32(_PRIOR_AREA))
-        out[z] = np.float32(1.0) - np.exp(rho * np.float32(-math.pi * MATCH_TOL_PX**2))
-    return np.clip(out, _MIN_P_FALSE, 0.5)
+    out = np.empty((2, -(-h // BLOCK_PX), -(-w // BLOCK_PX)), np.float32)
+    half = max(1, int(round(radius_px / BLOCK_PX)))
+    _dot_densities(np.ascontiguousarray(near_zone).view(np.uint8), dots.u, dots.v,
+                   np.asarray(near, bool), BLOCK_PX, half, out)  # fmt: skip
+    # the chance of a dot within the tolerance at that density (numpy's exp: vectorised)
+    np.exp(out * np.float32(-math.pi * MATCH_TOL_PX**2), out=out)
+    np.subtract(np.float32(1.0), out, out=out)
+    return np.clip(out, _MIN_P_FALSE, 0.5, out=out)
+
+
+@njit(cache=True)
+def _dot_densities(zone, u, v, near, block, half, out):
+    """The observed dots' density (1 / px^2) of each zone around each block, into ``out`` (2,
+    Hb, Wb): the dots (``u``, ``v``, ``near`` (M,)) and the pixels (``zone`` (H, W) uint8, 1
+    near a stripe) of the zone in the (2 ``half`` + 1)-block square around the block, from
+    their integral images, the frame's density weighing as much as :data:`_PRIOR_AREA` px."""
+    h, w = zone.shape
+    hb, wb = out.shape[1], out.shape[2]
+    # per zone and block: its dots, and its pixels (the near ones counted, the clear the rest)
+    count = np.zeros((2, hb, wb), np.int32)
+    for i in range(u.shape[0]):
+        br = min(max(int(v[i]) // block, 0), hb - 1)
+        bc = min(max(int(u[i]) // block, 0), wb - 1)
+        count[1 if near[i] else 0, br, bc] += 1
+    area = np.zeros((2, hb, wb), np.int32)
+    _block_counts(zone, block, area[1])
+    for br in range(hb):
+        rows = min(h - br * block, block)
+        for bc in range(wb):
+            area[0, br, bc] = rows * min(w - bc * block, block) - area[1, br, bc]
+    for z in range(2):
+        prior = _PRIOR_AREA * count[z].sum() / max(area[z].sum(), 1)
+        n = _box_sums(count[z], half)
+        a = _box_sums(area[z], half)
+        for br in range(hb):
+            for bc in range(wb):
+                out[z, br, bc] = (n[br, bc] + prior) / (a[br, bc] + _PRIOR_AREA)
+
+
+@njit(cache=True)
+def _box_sums(x, half):
+    """(R, C) int32: the sums of ``x`` (R, C) int32 over the squares of (2 ``half`` + 1) x
+    (2 ``half`` + 1) around each element (nothing beyond its edges): running sums down the
+    columns (whole rows at a time), then along the rows."""
+    rows, cols = x.shape
+    col = np.zeros(cols, np.int32)
+    for r in range(min(half, rows)):
+        col += x[r]
+    out = np.empty((rows, cols), np.int32)
+    for r in range(rows):
+        if r + half < rows:
+            col += x[r + half]
+        if r - half - 1 >= 0:
+            col -= x[r - half - 1]
+        run = 0
+        for c in range(min(half, cols)):
+            run += col[c]
+        for c in range(cols):
+            if c + half < cols:
+                run += col[c + half]
+            if c - half - 1 >= 0:
+                run -= col[c - half - 1]
+            out[r, c] = run
+    return out
 
 
 @njit(cache=True)
 def _block_counts(zone, block, out):
-    """The pixels set in ``zone`` (H, W) uint8 (0 or 1) per block of ``block`` x ``block`` px
-    into ``out`` (ceil(H / block), ceil(W / block)): each block's rows summed first (whole rows
-    at a time, which the compiler vectorises), then their columns."""
+    """The pixels set in ``zone`` (H, W) uint8 (0 or 1, C order) per block of ``block`` x
+    ``block`` px into ``out`` (ceil(H / block), ceil(W / block)): each block's rows summed
+    first (whole rows at a time, which the compiler vectorises), then their columns. Blocks of
+    4 px across an image a whole number of them wide sum a row's 4 bytes as one 32-bit word:
+    the multiplication by 0x01010101 adds them into its top byte."""
     h, w = zone.shape
+    if block == 4 and w % 4 == 0:
+        words = zone.view(np.uint32)
+        acc4 = np.zeros(w // 4, np.uint32)
+        for br in range(out.shape[0]):
+            acc4[:] = 0
+            for r in range(br * 4, min(br * 4 + 4, h)):
+                acc4 += words[r]  # each byte at most 4: no carry into the next
+            for bc in range(w // 4):
+                out[br, bc] = ((acc4[bc] * np.uint32(0x01010101)) >> np.uint32(24)) & np.uint32(
+                    0xFF
+                )
+        return
     acc = np.zeros(w, np.int32)
     for br in range(out.shape[0]):
         acc[:] = 0

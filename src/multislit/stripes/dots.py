@@ -563,12 +563,48 @@ def places_beside_stripes(
     u, v : (M,) float64, px
     angle : (M,) float64, rad, the stripe's direction there (0 where unknown)
     """
+    pick, off = _beside_draw(len(u), n, spread_px, seed)
+    pu, pv, a = np.empty(len(pick)), np.empty(len(pick)), np.empty(len(pick))
+    _beside(u, v, np.asarray(angle, np.float64), pick, off, pu, pv, a)
+    return pu, pv, a
+
+
+def _beside_draw(k: int, n: int, spread_px: float, seed: int) -> tuple[NDArray[np.intp], F64]:
+    """:func:`places_beside_stripes`' draw: ``n`` of ``k`` stripe centres at random (every one
+    when there are fewer), (M,) intp, and their offsets across the stripe (M,) px."""
     rng = np.random.default_rng(seed)
-    k = len(u)
-    pick = rng.choice(k, size=min(k, n), replace=False) if k else np.zeros(0, int)
-    a = np.where(np.isfinite(angle[pick]), angle[pick], 0.0)
-    off = rng.uniform(-spread_px, spread_px, len(pick))
-    return u[pick] + off * np.cos(a), v[pick] - off * np.sin(a), a
+    pick = rng.choice(k, size=min(k, n), replace=False) if k else np.zeros(0, np.intp)
+    return pick.astype(np.intp, copy=False), rng.uniform(-spread_px, spread_px, len(pick))
+
+
+@njit(cache=True, inline="always")
+def _beside_at(u, v, angle, k, off):
+    """Stripe centre ``k`` (of ``u``, ``v``, ``angle`` (K,)) moved ``off`` px across its
+    stripe: the place (u, v) px and the stripe's direction there (0 where unknown)."""
+    a = angle[k] if np.isfinite(angle[k]) else 0.0
+    return u[k] + off * math.cos(a), v[k] - off * math.sin(a), a
+
+
+@njit(cache=True)
+def _beside(u, v, angle, pick, off, pu, pv, a):
+    """:func:`_beside_at` of the centres ``pick`` (M,) by ``off`` (M,) into ``pu``, ``pv``,
+    ``a`` (M,)."""
+    for i in range(pick.shape[0]):
+        pu[i], pv[i], a[i] = _beside_at(u, v, angle, pick[i], off[i])
+
+
+@njit(cache=True)
+def _beside_responses(smoothed, reach, u, v, angle, pick, off, zone_map, resp, level, zone):
+    """The dots' response (:func:`response_at`) and its level at the places beside the stripes
+    (:func:`_beside_at` of the centres ``pick`` (M,) by ``off`` (M,)) into ``resp``, ``level``
+    (M,), and their zone (``zone_map`` (H, W) uint8 at their pixel) into ``zone`` (M,)."""
+    h, w = zone_map.shape
+    for i in range(pick.shape[0]):
+        pu, pv, a = _beside_at(u, v, angle, pick[i], off[i])
+        resp[i], level[i] = response_at(smoothed, pu, pv, math.sin(a), math.cos(a), reach)
+        r = min(max(int(np.rint(pv)), 0), h - 1)
+        c = min(max(int(np.rint(pu)), 0), w - 1)
+        zone[i] = zone_map[r, c]
 
 
 def stripe_spacing(u: F64, v: F64) -> float:
@@ -606,27 +642,26 @@ def dot_response(
     saturation_level : the plane's saturation level; None: none (float data) ...
     """
     img = np.asarray(plane)
-    h, w = img.shape
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
     sm = gaussian_f32(img, sigma)
     reach = RESPONSE_REACH * sigma + 1.0
     nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
     # the noise, beside the stripes
-    pu, pv, a = places_beside_stripes(u, v, angle, spread_px, _NOISE_SAMPLES)
-    su, sv = np.sin(a), np.cos(a)
-    resp = np.empty(len(pu))
-    level = np.empty(len(pu))
-    _responses(sm, pu, pv, su, sv, reach, resp, level)
-    r = np.clip(np.rint(pv).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(pu).astype(np.intp), 0, w - 1)
-    zone = np.asarray(near_zone, bool)[r, c]
+    pick, off = _beside_draw(len(u), _NOISE_SAMPLES, spread_px, 0)
+    # in the centres' order (by row): the image read as it lies in memory
+    o = np.argsort(pick)
+    pick, off = pick[o], off[o]
+    resp, level = np.empty(len(pick)), np.empty(len(pick))
+    zone = np.empty(len(pick), np.uint8)
+    _beside_responses(sm, reach, u, v, np.asarray(angle, np.float64), pick, off,
+                      np.ascontiguousarray(near_zone).view(np.uint8), resp, level, zone)  # fmt: skip
     ok = np.isfinite(resp) & np.isfinite(level)
     edges = np.zeros((2, _NOISE_BINS + 1), np.float32)
     offset = np.zeros((2, _NOISE_BINS), np.float32)
     sig = np.ones((2, _NOISE_BINS), np.float32)
     fallback = smoothed_noise(1.0, sigma)
     for z in (0, 1):
-        m = ok & (zone == bool(z))
+        m = ok & (zone == z)
         x, lv = resp[m], level[m]
         if x.size < 4 * _NOISE_BINS:  # too few places: the other zone's, or unit noise
             m = ok
@@ -861,7 +896,7 @@ def sharp_response(
         if table is None:
             continue
         e, med, s_ = table
-        m = ok & (zone == bool(z))
+        m = ok & (zone == z)
         b_ = np.clip(np.searchsorted(e, level[m], side="right") - 1, 0, _NOISE_BINS - 1)
         sig[m] = s_[b_]
         r[m] -= med[b_].astype(np.float32)
