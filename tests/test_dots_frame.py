@@ -17,7 +17,7 @@ from multislit.identify.evidence import (
 )
 from multislit.stripes.dots import (
     DotCentres,
-    _level_bins,
+    _response_noise,
     dots_off_stripes,
     find_dots,
     gaussian_f32,
@@ -28,15 +28,20 @@ from multislit.stripes.dots import (
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
-@pytest.mark.parametrize("sigma", [0.5, 0.89, 1.7])
-def test_gaussian_f32_is_opencvs_float32_blur(dtype, sigma):
+@pytest.mark.parametrize(("sigma", "taps"), [(0.5, 5), (0.89, 7), (1.7, 11)])
+def test_gaussian_f32_is_opencvs_blur_three_sigmas_wide(dtype, sigma, taps):
+    """OpenCV's Gaussian of the kernel size it takes for 8-bit data (3 sigmas either side),
+    computed in float32 whatever the data."""
     rng = np.random.default_rng(1)
     top = 255 if dtype == np.uint8 else 4095
     img = rng.integers(0, top + 1, (37, 53)).astype(dtype)
-    want = cv2.GaussianBlur(img.astype(np.float32), (0, 0), sigma)
+    want = cv2.GaussianBlur(img.astype(np.float32), (taps, taps), sigma)
     got = gaussian_f32(img, sigma)
     assert got.dtype == np.float32
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * top)
+    # within a fraction of a percent of the untruncated Gaussian
+    full = cv2.GaussianBlur(img.astype(np.float64), (0, 0), sigma)
+    assert np.abs(got - full).max() < 0.01 * top
 
 
 def test_find_dots_takes_every_local_maximum_above_the_threshold():
@@ -48,7 +53,7 @@ def test_find_dots_takes_every_local_maximum_above_the_threshold():
     noise, size, k = 1.0, 2.1, 4.0
     dots = find_dots(img, noise, size, k_sigma=k)
     sigma = size / 2.3548200450309493
-    s = cv2.GaussianBlur(img, (0, 0), sigma)
+    s = cv2.GaussianBlur(img, (7, 7), sigma)  # to 3 sigmas
     thr = np.float32(k * noise / (2.0 * math.sqrt(math.pi) * sigma))
     peak = (s >= cv2.dilate(s, np.ones((3, 3), np.uint8))) & (s > thr)
     peak[0, :] = peak[-1, :] = peak[:, 0] = peak[:, -1] = False
@@ -134,20 +139,48 @@ def test_nan_near_clipped_is_the_dilated_clipped_pixels(dtype):
     assert not np.isnan(out).any()
 
 
-def test_level_bins_are_the_quantile_bins_and_their_medians():
+def _noise_table_reference(x, level, bins):
+    """The noise table's definition in numpy: quantile bins of the level, each bin's median
+    and 1.4826 median absolute deviations, at least a quarter of their median."""
+    e = np.quantile(level, np.linspace(0.0, 1.0, bins + 1))
+    e[0], e[-1] = -np.inf, np.inf
+    b = np.clip(np.searchsorted(e, level, side="right") - 1, 0, bins - 1)
+    med = np.array([np.median(x[b == j]) for j in range(bins)])
+    sig = np.array([1.4826 * np.median(np.abs(x[b == j] - med[j])) for j in range(bins)])
+    return e, med, np.maximum(sig, 0.25 * np.median(sig))
+
+
+def test_response_noise_is_the_quantile_bins_and_their_robust_spread():
+    """Per zone, the levels' quantile bins and each bin's median and robust sigma; a zone of
+    too few places takes every place's."""
     rng = np.random.default_rng(8)
-    level = rng.gamma(2.0, 30.0, 3001)
-    x = rng.normal(0.0, 1.0 + level / 50.0)
-    edges, med, mad = _level_bins(x, level, 12)
-    want = np.quantile(level, np.linspace(0.0, 1.0, 13))
-    np.testing.assert_allclose(edges[1:-1], want[1:-1], rtol=1e-12)
-    assert edges[0] == -np.inf and edges[-1] == np.inf
-    b = np.clip(np.searchsorted(edges, level, side="right") - 1, 0, 11)
-    for j in range(12):
-        m = np.median(x[b == j])
-        assert med[j] == pytest.approx(m, abs=1e-12)
-        assert mad[j] == pytest.approx(np.median(np.abs(x[b == j] - m)), abs=1e-12)
-    assert mad[-1] > 1.5 * mad[0]  # the noise grows with the level
+    n = 3001
+    level = rng.gamma(2.0, 30.0, n)
+    zone = (rng.random(n) < 0.3).astype(np.uint8)
+    x = rng.normal(0.5 * zone, 1.0 + level / 50.0 + zone)
+    o = np.argsort(level)
+    for zones, want_from in ((zone, (0, 1)), (np.zeros(n, np.uint8), (0, None))):
+        edges = np.zeros((2, 13), np.float32)
+        offset = np.zeros((2, 12), np.float32)
+        sig = np.ones((2, 12), np.float32)
+        _response_noise(x[o], level[o], zones[o], 0.3, edges, offset, sig)
+        for z, src in enumerate(want_from):
+            m = np.ones(n, bool) if src is None else zones == src
+            e, med, s = _noise_table_reference(x[m], level[m], 12)
+            np.testing.assert_allclose(edges[z, 1:-1], e[1:-1], rtol=1e-6)
+            assert edges[z, 0] == -np.finfo(np.float32).max
+            assert edges[z, -1] == np.finfo(np.float32).max
+            np.testing.assert_allclose(offset[z], med, rtol=1e-6, atol=1e-6)
+            np.testing.assert_allclose(sig[z], s, rtol=1e-6)
+        assert sig[0, -1] > 1.5 * sig[0, 0]  # the noise grows with the level
+    # too few places in all: unit bins and the given sigma
+    edges = np.zeros((2, 13), np.float32)
+    offset = np.zeros((2, 12), np.float32)
+    sig = np.ones((2, 12), np.float32)
+    _response_noise(x[o][:40], level[o][:40], zone[o][:40], 0.3, edges, offset, sig)
+    np.testing.assert_allclose(edges, np.tile(np.linspace(0.0, 1.0, 13), (2, 1)), rtol=1e-6)
+    np.testing.assert_array_equal(sig, 0.3 * np.ones((2, 12), np.float32))
+    assert not offset.any()
 
 
 @pytest.mark.parametrize("shape", [(16, 20), (37, 53)])

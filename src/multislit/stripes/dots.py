@@ -38,7 +38,6 @@ from scipy.spatial import cKDTree
 
 from multislit.stripes.separation import saturation_level_of
 from multislit.stripes.sizes import FWHM_PER_SIGMA
-from multislit.stripes.slope import _gaussian_taps
 from multislit.stripes.validation import SlitExtractionError
 
 if TYPE_CHECKING:
@@ -143,13 +142,19 @@ _PEAKS_FIRST = 1 << 14
 
 
 def gaussian_f32(img: NDArray, sigma: float) -> F32:
-    """(H, W) float32: ``img`` (H, W) smoothed by a Gaussian of ``sigma`` px as
-    ``cv2.GaussianBlur`` smooths it as float32 (its kernel, its border); 8- and 16-bit data are
-    filtered straight into float32, without a float copy of the image first."""
-    if img.dtype in (np.uint8, np.uint16):
-        g = _gaussian_taps(sigma)
-        return cv2.sepFilter2D(img, cv2.CV_32F, g, g)
-    return cv2.GaussianBlur(img.astype(np.float32, copy=False), (0, 0), sigma)
+    """(H, W) float32: ``img`` (H, W) smoothed by a Gaussian of ``sigma`` px reaching
+    :data:`_GAUSS_REACH` sigmas (OpenCV's kernel size for 8-bit data; reflected at the border),
+    8- and 16-bit data filtered straight into float32, without a float copy first."""
+    taps = round(2.0 * _GAUSS_REACH * sigma + 1.0) | 1
+    g = cv2.getGaussianKernel(taps, sigma, cv2.CV_32F)
+    if img.dtype not in (np.uint8, np.uint16):
+        img = img.astype(np.float32, copy=False)
+    return cv2.sepFilter2D(img, cv2.CV_32F, g, g)
+
+
+#: :func:`gaussian_f32`'s kernel reaches this many sigmas either side (its tails beyond hold
+#: under 0.3 % of its weight).
+_GAUSS_REACH = 3.0
 
 
 def nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
@@ -511,43 +516,53 @@ class DotResponse:
         return out
 
 
-def _level_bins(x: F64, level: F64, bins: int) -> tuple[F64, F64, F64]:
-    """Values ``x`` (M,) in ``bins`` bins of equal counts by their ``level`` (M,).
-
-    Returns
-    -------
-    edges : (bins + 1,) float64, the levels' quantiles (linear between the sorted levels), the
-        first -inf and the last +inf: a value lies in bin j where ``edges[j] <= level <
-        edges[j + 1]``
-    med, mad : (bins,) float64, each bin's median of ``x`` and median absolute deviation from
-        it (NaN: an empty bin)
-    """
-    o = np.argsort(level)
-    lv = level[o]
-    pos = (len(lv) - 1) * np.linspace(0.0, 1.0, bins + 1)
-    lo = pos.astype(np.intp)
-    hi = np.minimum(lo + 1, len(lv) - 1)
-    edges = lv[lo] + (pos - lo) * (lv[hi] - lv[lo])
-    edges[0], edges[-1] = -np.inf, np.inf
-    # the levels sorted, each bin is a run of them
-    med = np.empty(bins)
-    mad = np.empty(bins)
-    _run_medians(x[o], np.searchsorted(lv, edges, side="left"), med, mad)
-    return edges, med, mad
-
-
 @njit(cache=True)
-def _run_medians(x, start, med, mad):
-    """The median of each run ``x[start[j]:start[j + 1]]`` and the median absolute deviation
-    from it into ``med``, ``mad`` (J,) (NaN: an empty run)."""
-    for j in range(med.shape[0]):
-        a, b = start[j], start[j + 1]
-        if b <= a:
-            med[j] = mad[j] = np.nan
+def _response_noise(x, level, zone, fallback, edges, offset, sig):
+    """:class:`DotResponse`'s noise per zone and level bin from the response ``x`` at places
+    beside the stripes, sorted by their ``level`` (M,), in ``zone`` (M,) (0 clear, 1 near a
+    stripe): per zone, bins of equal counts (``edges`` (2, B + 1): the levels' quantiles,
+    linear between the sorted levels, the first and last the float32 extremes), each bin's
+    median (``offset`` (2, B)) and robust sigma (``sig`` (2, B): 1.4826 median absolute
+    deviations, at least :data:`_NOISE_FLOOR` of the zone's median). A zone with fewer than 4
+    places a bin takes every place; with fewer in all, edges 0..1 and the ``fallback`` sigma.
+    The bins without places keep offset 0 and sigma 1, as given."""
+    nb = offset.shape[1]
+    e = np.empty(nb + 1)
+    for z in range(2):
+        sel = np.flatnonzero(zone == z)
+        if sel.shape[0] < 4 * nb:  # too few places: every one
+            sel = np.arange(x.shape[0])
+        m = sel.shape[0]
+        if m < 4 * nb:
+            for i in range(nb + 1):
+                edges[z, i] = i / nb
+            sig[z, :] = fallback
             continue
-        m = np.median(x[a:b])
-        med[j] = m
-        mad[j] = np.median(np.abs(x[a:b] - m))
+        xs = x[sel]
+        ls = level[sel]
+        for i in range(nb + 1):
+            pos = (m - 1) * (i / nb)
+            lo = min(int(pos), m - 1)
+            hi = min(lo + 1, m - 1)
+            e[i] = ls[lo] + (pos - lo) * (ls[hi] - ls[lo])
+        e[0] = -np.inf
+        e[nb] = np.inf
+        start = np.searchsorted(ls, e)  # the levels sorted: each bin is a run of them
+        for j in range(nb):
+            a, b = start[j], start[j + 1]
+            if b > a:
+                med = np.median(xs[a:b])
+                offset[z, j] = med
+                sig[z, j] = 1.4826 * np.median(np.abs(xs[a:b] - med))
+        floor = _NOISE_FLOOR * max(np.median(sig[z]), 1e-12)
+        for j in range(nb):
+            sig[z, j] = max(sig[z, j], floor)
+        for i in range(nb + 1):
+            edges[z, i] = min(max(e[i], -_F32_MAX), _F32_MAX)
+
+
+#: The largest float32.
+_F32_MAX = float(np.finfo(np.float32).max)
 
 
 def places_beside_stripes(
@@ -656,29 +671,12 @@ def dot_response(
     _beside_responses(sm, reach, u, v, np.asarray(angle, np.float64), pick, off,
                       np.ascontiguousarray(near_zone).view(np.uint8), resp, level, zone)  # fmt: skip
     ok = np.isfinite(resp) & np.isfinite(level)
+    x, lv, zone = resp[ok], level[ok], zone[ok]
+    o = np.argsort(lv)
     edges = np.zeros((2, _NOISE_BINS + 1), np.float32)
     offset = np.zeros((2, _NOISE_BINS), np.float32)
     sig = np.ones((2, _NOISE_BINS), np.float32)
-    fallback = smoothed_noise(1.0, sigma)
-    for z in (0, 1):
-        m = ok & (zone == z)
-        x, lv = resp[m], level[m]
-        if x.size < 4 * _NOISE_BINS:  # too few places: the other zone's, or unit noise
-            m = ok
-            x, lv = resp[m], level[m]
-        if x.size < 4 * _NOISE_BINS:
-            edges[z] = np.linspace(0.0, 1.0, _NOISE_BINS + 1)
-            sig[z] = fallback
-            continue
-        e, med, mad = _level_bins(x, lv, _NOISE_BINS)
-        has = np.isfinite(med)  # the bins without places keep offset 0 and sigma 1
-        offset[z, has] = med[has]
-        sig[z, has] = 1.4826 * mad[has]
-        floor = _NOISE_FLOOR * max(float(np.median(sig[z])), 1e-12)
-        sig[z] = np.maximum(sig[z], floor)
-        edges[z] = np.nan_to_num(
-            e, posinf=np.finfo(np.float32).max, neginf=-np.finfo(np.float32).max
-        )
+    _response_noise(x[o], lv[o], zone[o], smoothed_noise(1.0, sigma), edges, offset, sig)
     # the look-up: _LUT levels over twice the span of the inner edges, each reading its bin
     lut_lo = np.zeros(2)
     lut_scale = np.ones(2)
