@@ -199,52 +199,48 @@ def _dot_densities(zone, u, v, near, block, half, out):
     their integral images, the frame's density weighing as much as :data:`_PRIOR_AREA` px."""
     h, w = zone.shape
     hb, wb = out.shape[1], out.shape[2]
-    # per zone and block: its dots, and its pixels (the near ones counted, the clear the rest)
-    count = np.zeros((2, hb, wb), np.int32)
+    # per block, side by side: the dots of each zone (0 clear, 1 near), the pixels of each
+    x = np.zeros((hb, wb, 4), np.int32)
+    n_near = 0
     for i in range(u.shape[0]):
         br = min(max(int(v[i]) // block, 0), hb - 1)
         bc = min(max(int(u[i]) // block, 0), wb - 1)
-        count[1 if near[i] else 0, br, bc] += 1
-    area = np.zeros((2, hb, wb), np.int32)
-    _block_counts(zone, block, area[1])
+        x[br, bc, 1 if near[i] else 0] += 1
+        n_near += 1 if near[i] else 0
+    near_px = np.zeros((hb, wb), np.int32)
+    _block_counts(zone, block, near_px)
+    a_near = 0
     for br in range(hb):
         rows = min(h - br * block, block)
         for bc in range(wb):
-            area[0, br, bc] = rows * min(w - bc * block, block) - area[1, br, bc]
-    for z in range(2):
-        prior = _PRIOR_AREA * count[z].sum() / max(area[z].sum(), 1)
-        n = _box_sums(count[z], half)
-        a = _box_sums(area[z], half)
-        for br in range(hb):
-            for bc in range(wb):
-                out[z, br, bc] = (n[br, bc] + prior) / (a[br, bc] + _PRIOR_AREA)
-
-
-@njit(cache=True)
-def _box_sums(x, half):
-    """(R, C) int32: the sums of ``x`` (R, C) int32 over the squares of (2 ``half`` + 1) x
-    (2 ``half`` + 1) around each element (nothing beyond its edges): running sums down the
-    columns (whole rows at a time), then along the rows."""
-    rows, cols = x.shape
-    col = np.zeros(cols, np.int32)
-    for r in range(min(half, rows)):
-        col += x[r]
-    out = np.empty((rows, cols), np.int32)
-    for r in range(rows):
-        if r + half < rows:
-            col += x[r + half]
-        if r - half - 1 >= 0:
-            col -= x[r - half - 1]
-        run = 0
-        for c in range(min(half, cols)):
-            run += col[c]
-        for c in range(cols):
-            if c + half < cols:
-                run += col[c + half]
-            if c - half - 1 >= 0:
-                run -= col[c - half - 1]
-            out[r, c] = run
-    return out
+            x[br, bc, 3] = near_px[br, bc]
+            x[br, bc, 2] = rows * min(w - bc * block, block) - near_px[br, bc]
+            a_near += near_px[br, bc]
+    prior0 = _PRIOR_AREA * (u.shape[0] - n_near) / max(h * w - a_near, 1)
+    prior1 = _PRIOR_AREA * n_near / max(a_near, 1)
+    # the sums over the squares: running sums down the columns (whole rows at a time), then
+    # differences of each row's prefix sums
+    flat = x.reshape(hb, 4 * wb)
+    col = np.zeros(4 * wb, np.int32)
+    for r in range(min(half, hb)):
+        col += flat[r]
+    prefix = np.zeros((wb + 1, 4), np.int32)
+    for br in range(hb):
+        if br + half < hb:
+            col += flat[br + half]
+        if br - half - 1 >= 0:
+            col -= flat[br - half - 1]
+        for bc in range(wb):
+            for k in range(4):
+                prefix[bc + 1, k] = prefix[bc, k] + col[4 * bc + k]
+        for bc in range(wb):
+            hi, lo = min(bc + half + 1, wb), max(bc - half, 0)
+            n0 = prefix[hi, 0] - prefix[lo, 0]
+            n1 = prefix[hi, 1] - prefix[lo, 1]
+            a0 = prefix[hi, 2] - prefix[lo, 2]
+            a1 = prefix[hi, 3] - prefix[lo, 3]
+            out[0, br, bc] = (n0 + prior0) / (a0 + _PRIOR_AREA)
+            out[1, br, bc] = (n1 + prior1) / (a1 + _PRIOR_AREA)
 
 
 @njit(cache=True)
