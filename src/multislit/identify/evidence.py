@@ -35,11 +35,9 @@ import math
 from dataclasses import dataclass
 from functools import cached_property
 
-import cv2
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from multislit._groups import group_medians
 from multislit.identify.launch import launch
@@ -54,6 +52,7 @@ from multislit.stripes.dots import (
     dots_off_stripes,
     find_dots,
     near_stripes,
+    point_grid,
     z_many,
 )
 from multislit.stripes.separation import saturation_level_of
@@ -182,26 +181,100 @@ def false_match_map(
     radius_px : px
     """
     h, w = near_zone.shape
-    hb, wb = -(-h // BLOCK_PX), -(-w // BLOCK_PX)
-    pad = np.zeros((hb * BLOCK_PX, wb * BLOCK_PX), np.float32)
-    pad[:h, :w] = near_zone
-    # the blocks' sums: their means (OpenCV's area resampling) times their size
-    near_area = cv2.resize(pad, (wb, hb), interpolation=cv2.INTER_AREA) * np.float32(BLOCK_PX**2)
-    pad[:h, :w] = ~near_zone
-    clear_area = cv2.resize(pad, (wb, hb), interpolation=cv2.INTER_AREA) * np.float32(BLOCK_PX**2)
-    r = np.clip(dots.v.astype(np.intp) // BLOCK_PX, 0, hb - 1)
-    c = np.clip(dots.u.astype(np.intp) // BLOCK_PX, 0, wb - 1)
-    k = 2 * max(1, int(round(radius_px / BLOCK_PX))) + 1
-    out = np.empty((2, hb, wb), np.float32)
-    for z, area0, sel in ((0, clear_area, ~near), (1, near_area, near)):
-        cnt = np.zeros((hb, wb), np.float32)
-        np.add.at(cnt, (r[sel], c[sel]), 1.0)
-        n = cv2.boxFilter(cnt, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        area = cv2.boxFilter(area0, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        rho0 = np.count_nonzero(sel) / max(float(area0.sum()), 1.0)
-        rho = (n + np.float32(_PRIOR_AREA * rho0)) / (area + np.float32(_PRIOR_AREA))
-        out[z] = np.float32(1.0) - np.exp(rho * np.float32(-math.pi * MATCH_TOL_PX**2))
-    return np.clip(out, _MIN_P_FALSE, 0.5)
+    out = np.empty((2, -(-h // BLOCK_PX), -(-w // BLOCK_PX)), np.float32)
+    half = max(1, int(round(radius_px / BLOCK_PX)))
+    _dot_densities(np.ascontiguousarray(near_zone).view(np.uint8), dots.u, dots.v,
+                   np.asarray(near, bool), BLOCK_PX, half, out)  # fmt: skip
+    # the chance of a dot within the tolerance at that density (numpy's exp: vectorised)
+    np.exp(out * np.float32(-math.pi * MATCH_TOL_PX**2), out=out)
+    np.subtract(np.float32(1.0), out, out=out)
+    return np.clip(out, _MIN_P_FALSE, 0.5, out=out)
+
+
+@njit(cache=True)
+def _dot_densities(zone, u, v, near, block, half, out):
+    """The observed dots' density (1 / px^2) of each zone around each block, into ``out`` (2,
+    Hb, Wb): the dots (``u``, ``v``, ``near`` (M,)) and the pixels (``zone`` (H, W) uint8, 1
+    near a stripe) of the zone in the (2 ``half`` + 1)-block square around the block, from
+    their integral images, the frame's density weighing as much as :data:`_PRIOR_AREA` px."""
+    h, w = zone.shape
+    hb, wb = out.shape[1], out.shape[2]
+    # per block, side by side: the dots of each zone (0 clear, 1 near), the pixels of each
+    x = np.zeros((hb, wb, 4), np.int32)
+    n_near = 0
+    for i in range(u.shape[0]):
+        br = min(max(int(v[i]) // block, 0), hb - 1)
+        bc = min(max(int(u[i]) // block, 0), wb - 1)
+        x[br, bc, 1 if near[i] else 0] += 1
+        n_near += 1 if near[i] else 0
+    near_px = np.zeros((hb, wb), np.int32)
+    _block_counts(zone, block, near_px)
+    a_near = 0
+    for br in range(hb):
+        rows = min(h - br * block, block)
+        for bc in range(wb):
+            x[br, bc, 3] = near_px[br, bc]
+            x[br, bc, 2] = rows * min(w - bc * block, block) - near_px[br, bc]
+            a_near += near_px[br, bc]
+    prior0 = _PRIOR_AREA * (u.shape[0] - n_near) / max(h * w - a_near, 1)
+    prior1 = _PRIOR_AREA * n_near / max(a_near, 1)
+    # the sums over the squares: running sums down the columns (whole rows at a time), then
+    # differences of each row's prefix sums
+    flat = x.reshape(hb, 4 * wb)
+    col = np.zeros(4 * wb, np.int32)
+    for r in range(min(half, hb)):
+        col += flat[r]
+    prefix = np.zeros((wb + 1, 4), np.int32)
+    for br in range(hb):
+        if br + half < hb:
+            col += flat[br + half]
+        if br - half - 1 >= 0:
+            col -= flat[br - half - 1]
+        for bc in range(wb):
+            for k in range(4):
+                prefix[bc + 1, k] = prefix[bc, k] + col[4 * bc + k]
+        for bc in range(wb):
+            hi, lo = min(bc + half + 1, wb), max(bc - half, 0)
+            n0 = prefix[hi, 0] - prefix[lo, 0]
+            n1 = prefix[hi, 1] - prefix[lo, 1]
+            a0 = prefix[hi, 2] - prefix[lo, 2]
+            a1 = prefix[hi, 3] - prefix[lo, 3]
+            out[0, br, bc] = (n0 + prior0) / (a0 + _PRIOR_AREA)
+            out[1, br, bc] = (n1 + prior1) / (a1 + _PRIOR_AREA)
+
+
+@njit(cache=True)
+def _block_counts(zone, block, out):
+    """The pixels set in ``zone`` (H, W) uint8 (0 or 1, C order) per block of ``block`` x
+    ``block`` px into ``out`` (ceil(H / block), ceil(W / block)): each block's rows summed
+    first (whole rows at a time, which the compiler vectorises), then their columns. Blocks of
+    4 px across an image a whole number of them wide sum a row's 4 bytes as one 32-bit word:
+    the multiplication by 0x01010101 adds them into its top byte."""
+    h, w = zone.shape
+    if block == 4 and w % 4 == 0:
+        words = zone.view(np.uint32)
+        acc4 = np.zeros(w // 4, np.uint32)
+        for br in range(out.shape[0]):
+            acc4[:] = 0
+            for r in range(br * 4, min(br * 4 + 4, h)):
+                acc4 += words[r]  # each byte at most 4: no carry into the next
+            for bc in range(w // 4):
+                out[br, bc] = ((acc4[bc] * np.uint32(0x01010101)) >> np.uint32(24)) & np.uint32(
+                    0xFF
+                )
+        return
+    acc = np.zeros(w, np.int32)
+    for br in range(out.shape[0]):
+        acc[:] = 0
+        for r in range(br * block, min((br + 1) * block, h)):
+            row = zone[r]
+            for c in range(w):
+                acc[c] += row[c]
+        for bc in range(out.shape[1]):
+            t = 0
+            for c in range(bc * block, min((bc + 1) * block, w)):
+                t += acc[c]
+            out[br, bc] = t
 
 
 def dot_grid(
@@ -209,15 +282,7 @@ def dot_grid(
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], int, int]:
     """The observed dots in a grid of ``cell`` px: (order (M,), cell_start (C+1,), nx, ny):
     the dots of cell (cy, cx) are ``order[cell_start[cy*nx+cx]:cell_start[cy*nx+cx+1]]``."""
-    h, w = shape
-    nx, ny = int(math.ceil(w / cell)), int(math.ceil(h / cell))
-    cx = np.clip((dots.u / cell).astype(np.intp), 0, nx - 1)
-    cy = np.clip((dots.v / cell).astype(np.intp), 0, ny - 1)
-    key = cy * nx + cx
-    order = np.argsort(key, kind="stable").astype(np.intp)
-    start = np.zeros(nx * ny + 1, np.intp)
-    np.cumsum(np.bincount(key, minlength=nx * ny), out=start[1:])
-    return order, start, nx, ny
+    return point_grid(dots.u, dots.v, shape, cell)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1246,9 +1311,12 @@ def _dot_brightness(ex, dots: DotCentres, response: DotResponse, spacing_px: flo
     step = max(1, len(dots) // _BRIGHTNESS_SAMPLE)
     u, v = dots.u[::step], dots.v[::step]
     centre = np.arange(0, len(ex.u), 4)
-    tree = cKDTree(np.stack([ex.u[centre], ex.v[centre]], axis=1))
-    d, i = tree.query(np.stack([u, v], axis=1), distance_upper_bound=max(float(spacing_px), 1.0))
-    ok = np.isfinite(d)
+    cu, cv = ex.u[centre], ex.v[centre]
+    tol = max(float(spacing_px), 1.0)
+    g_order, g_start, gnx, gny = point_grid(cu, cv, ex.dots.shape, tol)
+    i = np.empty(len(u), np.intp)
+    _nearest_each(u, v, tol, cu, cv, g_order, g_start, gnx, gny, tol, i)
+    ok = i >= 0
     if not ok.any():
         return 1.0
     i = centre[i[ok]]
@@ -1277,6 +1345,13 @@ def _nearest_at(u0, v0, tol, ou, ov, g_order, g_start, gnx, gny, cell):
                     bd = d
                     best = o
     return best
+
+
+@njit(cache=True)
+def _nearest_each(u, v, tol, ou, ov, g_order, g_start, gnx, gny, cell, out):
+    """:func:`_nearest_at` of every place (``u``, ``v``) (M,) into ``out`` (M,)."""
+    for i in range(u.shape[0]):
+        out[i] = _nearest_at(u[i], v[i], tol, ou, ov, g_order, g_start, gnx, gny, cell)
 
 
 @njit(cache=True)

@@ -36,7 +36,6 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from multislit._groups import group_medians
 from multislit.stripes.separation import saturation_level_of
 from multislit.stripes.sizes import FWHM_PER_SIGMA
 from multislit.stripes.validation import SlitExtractionError
@@ -126,34 +125,123 @@ def find_dots(
     if not (math.isfinite(k_sigma) and k_sigma >= 0):
         raise SlitExtractionError(f"k_sigma must be >= 0, got {k_sigma!r}")
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
-    s = cv2.GaussianBlur(d.astype(np.float32, copy=False), (0, 0), sigma)
+    s = gaussian_f32(d, sigma)
     thr = k_sigma * smoothed_noise(noise_sigma, sigma)
-    peak = (s >= cv2.dilate(s, np.ones((3, 3), np.uint8))) & (s > thr)
-    peak[0, :] = peak[-1, :] = False
-    peak[:, 0] = peak[:, -1] = False
-    at = cv2.findNonZero(peak.view(np.uint8))  # (x, y), in the order of the rows
-    at = np.zeros((0, 2), np.intp) if at is None else at.reshape(-1, 2).astype(np.intp)
-    r, c = at[:, 1], at[:, 0]
-    if r.size == 0:
-        e = np.zeros(0)
-        return DotCentres(e, e.copy(), e.copy())
     floor = 1e-3 * float(thr) if thr > 0 else 1e-6
-    lc = np.log(np.maximum(s[r, c], floor))
-    du = _log_parabola(
-        np.log(np.maximum(s[r, c - 1], floor)), lc, np.log(np.maximum(s[r, c + 1], floor))
-    )
-    dv = _log_parabola(
-        np.log(np.maximum(s[r - 1, c], floor)), lc, np.log(np.maximum(s[r + 1, c], floor))
-    )
-    return DotCentres(c + du, r + dv, s[r, c].astype(np.float64))
+    cap = _PEAKS_FIRST
+    while True:
+        u, v, peak = np.empty(cap), np.empty(cap), np.empty(cap)
+        n = _local_maxima(s, np.float32(thr), floor, u, v, peak)
+        if n <= cap:
+            return DotCentres(u[:n], v[:n], peak[:n])
+        cap = n
 
 
-def _log_parabola(a: F64, b: F64, c: F64) -> F64:
-    """Offset (-0.5..0.5) of the vertex of the parabola through (-1, a), (0, b), (1, c)."""
+#: :func:`find_dots` makes room for this many dots first (more: it runs again with room for all).
+_PEAKS_FIRST = 1 << 14
+
+
+def gaussian_f32(img: NDArray, sigma: float) -> F32:
+    """(H, W) float32: ``img`` (H, W) smoothed by a Gaussian of ``sigma`` px reaching
+    :data:`_GAUSS_REACH` sigmas (OpenCV's kernel size for 8-bit data; reflected at the border),
+    8- and 16-bit data filtered straight into float32, without a float copy first."""
+    taps = round(2.0 * _GAUSS_REACH * sigma + 1.0) | 1
+    g = cv2.getGaussianKernel(taps, sigma, cv2.CV_32F)
+    if img.dtype not in (np.uint8, np.uint16):
+        img = img.astype(np.float32, copy=False)
+    return cv2.sepFilter2D(img, cv2.CV_32F, g, g)
+
+
+#: :func:`gaussian_f32`'s kernel reaches this many sigmas either side (its tails beyond hold
+#: under 0.3 % of its weight).
+_GAUSS_REACH = 3.0
+
+
+def nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
+    """NaN into ``out`` (H, W) at the pixels within the disc of ``radius`` px (OpenCV's
+    elliptic structuring element) of every pixel of ``img`` (H, W) at or above ``level`` (None:
+    none): a smoothing of ``img`` does not show a dot there."""
+    if level is None:
+        return
+    clipped = cv2.compare(img, float(level), cv2.CMP_GE)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    _nan_around(clipped, disc, out)
+
+
+@njit(cache=True)
+def _nan_around(mask, disc, out):
+    """NaN into ``out`` (H, W) at the offsets where ``disc`` (2R+1, 2R+1) is set around every
+    pixel set in ``mask`` (H, W) uint8; the rows without any are passed over in one vectorised
+    test each."""
+    h, w = mask.shape
+    rad = disc.shape[0] // 2
+    for r in range(h):
+        row = mask[r]
+        any_set = np.uint8(0)
+        for c in range(w):
+            any_set |= row[c]
+        if any_set == 0:
+            continue
+        for c in range(w):
+            if row[c] == 0:
+                continue
+            for dr in range(-rad, rad + 1):
+                if 0 <= r + dr < h:
+                    for dc in range(-rad, rad + 1):
+                        if disc[dr + rad, dc + rad] and 0 <= c + dc < w:
+                            out[r + dr, c + dc] = np.nan
+
+
+@njit(cache=True)
+def _local_maxima(s, thr, floor, u, v, peak):
+    """The local maxima of ``s`` (H, W) above ``thr`` (at least each of their 8 neighbours; not
+    on the image's edge), row by row: their centres (:func:`_log_vertex` along each axis, the
+    values taken as at least ``floor``) into ``u``, ``v`` and ``s`` there into ``peak`` (C,)
+    each; returns how many there are (more than C: the first C written). Each row's maxima are
+    marked first in a loop without branches, which the compiler vectorises."""
+    h, w = s.shape
+    cap = u.shape[0]
+    nw = (w + 7) // 8
+    mark = np.zeros(8 * nw, np.uint8)
+    words = mark.view(np.uint64)  # the marks 8 at a time: the rows' empty stretches skipped
+    n = 0
+    for r in range(1, h - 1):
+        up, row, down = s[r - 1], s[r], s[r + 1]
+        for c in range(1, w - 1):
+            x = row[c]
+            mark[c] = (
+                (x > thr) & (x >= row[c - 1]) & (x >= row[c + 1]) & (x >= up[c - 1])
+                & (x >= up[c]) & (x >= up[c + 1]) & (x >= down[c - 1]) & (x >= down[c])
+                & (x >= down[c + 1])
+            )  # fmt: skip
+        for k in range(nw):
+            if words[k] == 0:
+                continue
+            for c in range(8 * k, 8 * k + 8):
+                if mark[c] == 0:
+                    continue
+                if n < cap:
+                    x = row[c]
+                    lc = math.log(max(x, floor))
+                    u[n] = c + _log_vertex(
+                        math.log(max(row[c - 1], floor)), lc, math.log(max(row[c + 1], floor))
+                    )
+                    v[n] = r + _log_vertex(
+                        math.log(max(up[c], floor)), lc, math.log(max(down[c], floor))
+                    )
+                    peak[n] = x
+                n += 1
+    return n
+
+
+@njit(cache=True, inline="always")
+def _log_vertex(a, b, c):
+    """Offset (-0.5..0.5) of the vertex of the parabola through (-1, a), (0, b), (1, c); 0 where
+    it opens upwards."""
     den = a - 2.0 * b + c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = np.where(den < 0, 0.5 * (a - c) / den, 0.0)
-    return np.clip(off, -0.5, 0.5)
+    if not den < 0.0:
+        return 0.0
+    return min(max(0.5 * (a - c) / den, -0.5), 0.5)
 
 
 def near_stripes(u: F64, v: F64, shape: tuple[int, int], radius_px: float) -> NDArray[np.bool_]:
@@ -175,25 +263,63 @@ def near_stripes(u: F64, v: F64, shape: tuple[int, int], radius_px: float) -> ND
     return cv2.dilate(marks, ball) > 0
 
 
-def _stripe_peak_at(
-    r: NDArray[np.intp], c: NDArray[np.intp], u: F64, v: F64, peak: F64, shape: tuple[int, int],
-    radius_px: float,
-) -> NDArray[np.float32]:  # fmt: skip
-    """(M,) float32: the largest stripe peak (``peak`` (K,) at the centres ``u``, ``v``) within
-    the disc of ``radius_px`` (OpenCV's elliptic structuring element) of each pixel (``r``,
-    ``c``) (M,); 0 farther from every stripe."""
+def point_grid(
+    u: F64, v: F64, shape: tuple[int, int], cell: float
+) -> tuple[NDArray[np.intp], NDArray[np.intp], int, int]:
+    """Points (``u``, ``v`` (M,) px) in a grid of ``cell`` px over an image of ``shape`` (H, W):
+    (order (M,), cell_start (C+1,), nx, ny): the points of cell (cy, cx) are
+    ``order[cell_start[cy*nx+cx]:cell_start[cy*nx+cx+1]]`` (those outside the image in the
+    cells at its edges)."""
     h, w = shape
-    rad = max(1, int(math.ceil(radius_px)))
-    # the centres' peaks on the image padded by the reach (nothing beyond the image)
-    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1) + rad
-    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1) + rad
-    pk = np.zeros((h + 2 * rad, w + 2 * rad), np.float32)
-    np.maximum.at(pk, (pr, pc), np.asarray(peak, np.float32))
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-    out = np.zeros(len(r), np.float32)
-    for dr, dc in zip(*np.nonzero(k), strict=True):  # cv2.dilate's offsets
-        np.maximum(out, pk[r + dr, c + dc], out=out)
-    return out
+    nx, ny = max(1, math.ceil(w / cell)), max(1, math.ceil(h / cell))
+    order = np.empty(len(u), np.intp)
+    start = np.zeros(nx * ny + 1, np.intp)
+    _bucket(np.asarray(u, np.float64), np.asarray(v, np.float64), float(cell), nx, ny, order, start)
+    return order, start, nx, ny
+
+
+@njit(cache=True)
+def _bucket(u, v, cell, nx, ny, order, start):
+    """:func:`point_grid`'s cells, by a counting sort (the points of a cell in their order):
+    ``order`` (M,) and ``start`` (C + 1,), zero on entry."""
+    n = u.shape[0]
+    key = np.empty(n, np.intp)
+    for i in range(n):
+        cx = min(max(int(u[i] / cell), 0), nx - 1)
+        cy = min(max(int(v[i] / cell), 0), ny - 1)
+        key[i] = cy * nx + cx
+        start[key[i] + 1] += 1
+    for g in range(nx * ny):
+        start[g + 1] += start[g]
+    fill = start[:-1].copy()
+    for i in range(n):
+        order[fill[key[i]]] = i
+        fill[key[i]] += 1
+
+
+@njit(cache=True)
+def _stripe_peak_at(r, c, pr, pc, peak, disc, order, start, nx, ny, cell, out):
+    """Per pixel (``r``, ``c``) (M,): the largest stripe ``peak`` (K,) whose centre's pixel
+    (``pr``, ``pc``) (K,) lies at an offset where ``disc`` (2R+1, 2R+1) is set, into ``out``
+    (M,) (0 where none does); the centres' pixels in the grid (``order``, ``start``, ``nx``,
+    ``ny``) of ``cell`` px (:func:`point_grid`)."""
+    rad = disc.shape[0] // 2
+    for i in range(r.shape[0]):
+        best = 0.0
+        cx0 = max(0, int((c[i] - rad) / cell))
+        cx1 = min(nx - 1, int((c[i] + rad) / cell))
+        cy0 = max(0, int((r[i] - rad) / cell))
+        cy1 = min(ny - 1, int((r[i] + rad) / cell))
+        for cy in range(cy0, cy1 + 1):
+            for cx in range(cx0, cx1 + 1):
+                g = cy * nx + cx
+                for e in range(start[g], start[g + 1]):
+                    k = order[e]
+                    dr = pr[k] - r[i]
+                    dc = pc[k] - c[i]
+                    if abs(dr) <= rad and abs(dc) <= rad and disc[dr + rad, dc + rad]:
+                        best = max(best, peak[k])
+        out[i] = best
 
 
 def dots_off_stripes(
@@ -221,12 +347,21 @@ def dots_off_stripes(
     r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
     c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
     near = near_zone[r, c]
-    sp = _stripe_peak_at(r[near], c[near], u, v, peak, (h, w), clearance_px)
+    # the stripe centres' pixels, in a grid of cells about the disc's size
+    rad = max(1, int(math.ceil(clearance_px)))
+    pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
+    pc = np.clip(np.rint(u).astype(np.intp), 0, w - 1)
+    cell = float(2 * rad + 1)
+    order, start, nx, ny = point_grid(pc, pr, (h, w), cell)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+    sp = np.zeros(int(np.count_nonzero(near)))
+    _stripe_peak_at(r[near], c[near], pr, pc, np.asarray(peak, np.float64), disc, order, start,
+                    nx, ny, cell, sp)  # fmt: skip
     return _speckle_free(dots, near, sp, min_ratio)
 
 
 def _speckle_free(
-    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: NDArray[np.float32], min_ratio: float
+    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: F64, min_ratio: float
 ) -> tuple[DotCentres, NDArray[np.bool_]]:
     """The dots kept (those not ``near`` (M,) a stripe, and those whose peak reaches
     ``min_ratio`` of the stripe's peak beside them, ``stripe_peak`` (count of near,)) and
@@ -381,6 +516,55 @@ class DotResponse:
         return out
 
 
+@njit(cache=True)
+def _response_noise(x, level, zone, fallback, edges, offset, sig):
+    """:class:`DotResponse`'s noise per zone and level bin from the response ``x`` at places
+    beside the stripes, sorted by their ``level`` (M,), in ``zone`` (M,) (0 clear, 1 near a
+    stripe): per zone, bins of equal counts (``edges`` (2, B + 1): the levels' quantiles,
+    linear between the sorted levels, the first and last the float32 extremes), each bin's
+    median (``offset`` (2, B)) and robust sigma (``sig`` (2, B): 1.4826 median absolute
+    deviations, at least :data:`_NOISE_FLOOR` of the zone's median). A zone with fewer than 4
+    places a bin takes every place; with fewer in all, edges 0..1 and the ``fallback`` sigma.
+    The bins without places keep offset 0 and sigma 1, as given."""
+    nb = offset.shape[1]
+    e = np.empty(nb + 1)
+    for z in range(2):
+        sel = np.flatnonzero(zone == z)
+        if sel.shape[0] < 4 * nb:  # too few places: every one
+            sel = np.arange(x.shape[0])
+        m = sel.shape[0]
+        if m < 4 * nb:
+            for i in range(nb + 1):
+                edges[z, i] = i / nb
+            sig[z, :] = fallback
+            continue
+        xs = x[sel]
+        ls = level[sel]
+        for i in range(nb + 1):
+            pos = (m - 1) * (i / nb)
+            lo = min(int(pos), m - 1)
+            hi = min(lo + 1, m - 1)
+            e[i] = ls[lo] + (pos - lo) * (ls[hi] - ls[lo])
+        e[0] = -np.inf
+        e[nb] = np.inf
+        start = np.searchsorted(ls, e)  # the levels sorted: each bin is a run of them
+        for j in range(nb):
+            a, b = start[j], start[j + 1]
+            if b > a:
+                med = np.median(xs[a:b])
+                offset[z, j] = med
+                sig[z, j] = 1.4826 * np.median(np.abs(xs[a:b] - med))
+        floor = _NOISE_FLOOR * max(np.median(sig[z]), 1e-12)
+        for j in range(nb):
+            sig[z, j] = max(sig[z, j], floor)
+        for i in range(nb + 1):
+            edges[z, i] = min(max(e[i], -_F32_MAX), _F32_MAX)
+
+
+#: The largest float32.
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
 def places_beside_stripes(
     u: F64, v: F64, angle: F64, spread_px: float, n: int, seed: int = 0
 ) -> tuple[F64, F64, F64]:
@@ -394,12 +578,48 @@ def places_beside_stripes(
     u, v : (M,) float64, px
     angle : (M,) float64, rad, the stripe's direction there (0 where unknown)
     """
+    pick, off = _beside_draw(len(u), n, spread_px, seed)
+    pu, pv, a = np.empty(len(pick)), np.empty(len(pick)), np.empty(len(pick))
+    _beside(u, v, np.asarray(angle, np.float64), pick, off, pu, pv, a)
+    return pu, pv, a
+
+
+def _beside_draw(k: int, n: int, spread_px: float, seed: int) -> tuple[NDArray[np.intp], F64]:
+    """:func:`places_beside_stripes`' draw: ``n`` of ``k`` stripe centres at random (every one
+    when there are fewer), (M,) intp, and their offsets across the stripe (M,) px."""
     rng = np.random.default_rng(seed)
-    k = len(u)
-    pick = rng.choice(k, size=min(k, n), replace=False) if k else np.zeros(0, int)
-    a = np.where(np.isfinite(angle[pick]), angle[pick], 0.0)
-    off = rng.uniform(-spread_px, spread_px, len(pick))
-    return u[pick] + off * np.cos(a), v[pick] - off * np.sin(a), a
+    pick = rng.choice(k, size=min(k, n), replace=False) if k else np.zeros(0, np.intp)
+    return pick.astype(np.intp, copy=False), rng.uniform(-spread_px, spread_px, len(pick))
+
+
+@njit(cache=True, inline="always")
+def _beside_at(u, v, angle, k, off):
+    """Stripe centre ``k`` (of ``u``, ``v``, ``angle`` (K,)) moved ``off`` px across its
+    stripe: the place (u, v) px and the stripe's direction there (0 where unknown)."""
+    a = angle[k] if np.isfinite(angle[k]) else 0.0
+    return u[k] + off * math.cos(a), v[k] - off * math.sin(a), a
+
+
+@njit(cache=True)
+def _beside(u, v, angle, pick, off, pu, pv, a):
+    """:func:`_beside_at` of the centres ``pick`` (M,) by ``off`` (M,) into ``pu``, ``pv``,
+    ``a`` (M,)."""
+    for i in range(pick.shape[0]):
+        pu[i], pv[i], a[i] = _beside_at(u, v, angle, pick[i], off[i])
+
+
+@njit(cache=True)
+def _beside_responses(smoothed, reach, u, v, angle, pick, off, zone_map, resp, level, zone):
+    """The dots' response (:func:`response_at`) and its level at the places beside the stripes
+    (:func:`_beside_at` of the centres ``pick`` (M,) by ``off`` (M,)) into ``resp``, ``level``
+    (M,), and their zone (``zone_map`` (H, W) uint8 at their pixel) into ``zone`` (M,)."""
+    h, w = zone_map.shape
+    for i in range(pick.shape[0]):
+        pu, pv, a = _beside_at(u, v, angle, pick[i], off[i])
+        resp[i], level[i] = response_at(smoothed, pu, pv, math.sin(a), math.cos(a), reach)
+        r = min(max(int(np.rint(pv)), 0), h - 1)
+        c = min(max(int(np.rint(pu)), 0), w - 1)
+        zone[i] = zone_map[r, c]
 
 
 def stripe_spacing(u: F64, v: F64) -> float:
@@ -437,53 +657,26 @@ def dot_response(
     saturation_level : the plane's saturation level; None: none (float data) ...
     """
     img = np.asarray(plane)
-    h, w = img.shape
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
-    sm = cv2.GaussianBlur(img.astype(np.float32, copy=False), (0, 0), sigma)
+    sm = gaussian_f32(img, sigma)
     reach = RESPONSE_REACH * sigma + 1.0
-    if saturation_level is not None:
-        clipped = (img >= saturation_level).astype(np.uint8)
-        if clipped.any():
-            rad = int(math.ceil(2.0 * sigma))
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-            sm[cv2.dilate(clipped, k) > 0] = np.nan
+    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
     # the noise, beside the stripes
-    pu, pv, a = places_beside_stripes(u, v, angle, spread_px, _NOISE_SAMPLES)
-    su, sv = np.sin(a), np.cos(a)
-    resp = np.empty(len(pu))
-    level = np.empty(len(pu))
-    _responses(sm, pu, pv, su, sv, reach, resp, level)
-    r = np.clip(np.rint(pv).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(pu).astype(np.intp), 0, w - 1)
-    zone = np.asarray(near_zone, bool)[r, c]
+    pick, off = _beside_draw(len(u), _NOISE_SAMPLES, spread_px, 0)
+    # in the centres' order (by row): the image read as it lies in memory
+    o = np.argsort(pick)
+    pick, off = pick[o], off[o]
+    resp, level = np.empty(len(pick)), np.empty(len(pick))
+    zone = np.empty(len(pick), np.uint8)
+    _beside_responses(sm, reach, u, v, np.asarray(angle, np.float64), pick, off,
+                      np.ascontiguousarray(near_zone).view(np.uint8), resp, level, zone)  # fmt: skip
     ok = np.isfinite(resp) & np.isfinite(level)
+    x, lv, zone = resp[ok], level[ok], zone[ok]
+    o = np.argsort(lv)
     edges = np.zeros((2, _NOISE_BINS + 1), np.float32)
     offset = np.zeros((2, _NOISE_BINS), np.float32)
     sig = np.ones((2, _NOISE_BINS), np.float32)
-    fallback = smoothed_noise(1.0, sigma)
-    for z in (0, 1):
-        m = ok & (zone == bool(z))
-        x, lv = resp[m], level[m]
-        if x.size < 4 * _NOISE_BINS:  # too few places: the other zone's, or unit noise
-            m = ok
-            x, lv = resp[m], level[m]
-        if x.size < 4 * _NOISE_BINS:
-            edges[z] = np.linspace(0.0, 1.0, _NOISE_BINS + 1)
-            sig[z] = fallback
-            continue
-        e = np.quantile(lv, np.linspace(0.0, 1.0, _NOISE_BINS + 1))
-        e[0], e[-1] = -np.inf, np.inf
-        b = np.clip(np.searchsorted(e, lv, side="right") - 1, 0, _NOISE_BINS - 1)
-        med = group_medians(x, b, _NOISE_BINS)
-        mad = group_medians(np.abs(x - med[b]), b, _NOISE_BINS)
-        has = np.isfinite(med)  # the bins without places keep offset 0 and sigma 1
-        offset[z, has] = med[has]
-        sig[z, has] = 1.4826 * mad[has]
-        floor = _NOISE_FLOOR * max(float(np.median(sig[z])), 1e-12)
-        sig[z] = np.maximum(sig[z], floor)
-        edges[z] = np.nan_to_num(
-            e, posinf=np.finfo(np.float32).max, neginf=-np.finfo(np.float32).max
-        )
+    _response_noise(x[o], lv[o], zone[o], smoothed_noise(1.0, sigma), edges, offset, sig)
     # the look-up: _LUT levels over twice the span of the inner edges, each reading its bin
     lut_lo = np.zeros(2)
     lut_scale = np.ones(2)
@@ -565,13 +758,8 @@ def sharp_image(plane: ArrayLike, saturation_level: float | None = None) -> F32:
     """(H, W) float32: the image plane smoothed by a Gaussian of :data:`SHARP_SIGMA` px, NaN
     within a pixel or two of the pixels at or above ``saturation_level`` (None: none)."""
     img = np.asarray(plane)
-    sharp = cv2.GaussianBlur(img.astype(np.float32), (0, 0), SHARP_SIGMA)
-    if saturation_level is not None:
-        clipped = (img >= saturation_level).astype(np.uint8)
-        if clipped.any():
-            rad = int(math.ceil(2.0 * SHARP_SIGMA)) + 1
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-            sharp[cv2.dilate(clipped, k) > 0] = np.nan
+    sharp = gaussian_f32(img, SHARP_SIGMA)
+    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * SHARP_SIGMA)) + 1, sharp)
     return sharp
 
 
@@ -706,7 +894,7 @@ def sharp_response(
         if table is None:
             continue
         e, med, s_ = table
-        m = ok & (zone == bool(z))
+        m = ok & (zone == z)
         b_ = np.clip(np.searchsorted(e, level[m], side="right") - 1, 0, _NOISE_BINS - 1)
         sig[m] = s_[b_]
         r[m] -= med[b_].astype(np.float32)
