@@ -24,6 +24,7 @@ from multislit.stripes import (
 )
 from multislit.stripes.centres import _gather, _row_maxima
 from multislit.stripes.openings import _running_extreme, stripe_opening
+from multislit.stripes.ridges import merge_dots
 from multislit.stripes.separation import (
     _at_least,
     clip_level,
@@ -409,3 +410,28 @@ def test_slit_image_equals_refill_with_the_cells_slope(dtype):
         assert slits.dtype == hp.dtype
         assert np.any(slits != hp)  # dots were refilled
         np.testing.assert_array_equal(slits, ref)
+
+
+def test_merge_dots_equals_the_whole_images_reach():
+    """The dot image near the column pass's centres, made on their bounding box, is the one
+    made over the whole image: the column pass's within the reach of a centre, the row
+    pass's elsewhere."""
+    rng = np.random.default_rng(21)
+    h, w, sw = 90, 120, 3.2
+    row_dots = rng.random((h, w)).astype(np.float32)
+    col_dots = rng.random((h, w)).astype(np.float32) + 2.0
+    for u, v in (
+        (rng.uniform(30, 60, 25), rng.uniform(20, 40, 25)),
+        (np.array([0.2, w - 0.6]), np.array([h - 0.6, 0.3])),  # at the corners
+        (np.array([57.0]), np.array([44.0])),
+    ):
+        mark = np.zeros((h, w), np.uint8)
+        mark[
+            np.clip(np.rint(v).astype(np.intp), 0, h - 1), np.clip(u.astype(np.intp), 0, w - 1)
+        ] = 1
+        rad = math.ceil(1.5 * sw)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1,) * 2)
+        ref = np.where(cv2.dilate(mark, disc).view(bool), col_dots, row_dots)
+        got = merge_dots(row_dots, col_dots, u, v, sw)
+        np.testing.assert_array_equal(got, ref)
+        assert (got == col_dots).sum() > 0.5 * np.pi * rad**2
