@@ -28,7 +28,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from multislit.stripes.sizes import FWHM_PER_SIGMA
-from multislit.stripes.slope import cell_tensor
+from multislit.stripes.slope import cell_tensor, tensor_slopes
 from multislit.stripes.slope import reflect101 as reflect
 
 F32 = NDArray[np.float32]
@@ -107,32 +107,9 @@ def lean_slopes(slits: NDArray, stripe_width_px: float) -> F32:
     half = cv2.resize(slits, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
     tensor = cell_tensor(half, h // d, w // d, d // 2)
     tensor = cv2.GaussianBlur(tensor, (0, 0), max(stripe_width_px / d, 0.5))
-    return _tensor_slopes(tensor, np.float32(_LEAN_COHERENCE), np.float32(SHEAR_MIN_SLOPE))
-
-
-@njit(cache=True)
-def _tensor_slopes(tensor, coherence, min_slope):
-    """(ch, cw) float32, the lean of the stripes from ``tensor`` (ch, cw, 3) (J_uu, J_vv,
-    2 J_uv): the gradients lie across the stripe at theta from the u axis, tan 2 theta =
-    2 J_uv / (J_uu - J_vv), and a stripe f(u - t v) has gradients along (1, -t), so
-    t = -tan theta, clipped to +-1; 0 where the coherence is below ``coherence`` or
-    |t| below ``min_slope``."""
-    ch, cw = tensor.shape[0], tensor.shape[1]
-    out = np.zeros((ch, cw), np.float32)
-    for i in range(ch):
-        for j in range(cw):
-            juu, jvv, juv2 = tensor[i, j, 0], tensor[i, j, 1], tensor[i, j, 2]
-            diff = juu - jvv
-            mag = np.sqrt(diff * diff + juv2 * juv2)
-            if not mag >= coherence * (juu + jvv) + 1e-12:
-                continue
-            # tan theta = sin 2 theta / (1 + cos 2 theta) = 2 J_uv / (J_uu - J_vv + mag)
-            den = diff + mag
-            t = -juv2 / den if den > 0 else (-1.0 if juv2 > 0 else 1.0)
-            t = min(max(t, -1.0), 1.0)
-            if abs(t) >= min_slope:
-                out[i, j] = t
-    return out
+    return tensor_slopes(
+        tensor, np.float32(_LEAN_COHERENCE), np.float32(SHEAR_MIN_SLOPE), np.float32(0.0)
+    )
 
 
 def slopes_at(cells: F32, r: NDArray[np.intp], c: NDArray[np.intp]) -> NDArray[np.float64]:

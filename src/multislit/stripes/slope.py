@@ -105,8 +105,7 @@ def slope_cells(hp: NDArray, sigma: float, cell: int) -> F32:
     h, w = hp.shape
     tensor = cell_tensor(hp, max(h // cell, 1), max(w // cell, 1), cell)
     tensor = cv2.GaussianBlur(tensor, (0, 0), max(sigma / cell, 0.5))
-    t = np.tan(np.radians(_tensor_angles(*cv2.split(tensor)), dtype=np.float32))
-    return np.clip(t, np.float32(-1.0), np.float32(1.0))
+    return tensor_slopes(tensor, np.float32(_LEAN_COHERENCE), np.float32(0.0), np.float32(np.nan))
 
 
 def cell_slopes(slopes: F32, cell: int, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> F32:
@@ -260,4 +259,29 @@ def cell_tensor(img, ch, cw, f):
             sv[:] = 0.0
             suv[:] = 0.0
             rows = 0
+    return out
+
+
+@njit(cache=True)
+def tensor_slopes(tensor, coherence, min_slope, none):
+    """(ch, cw) float32, px per row, the lean of the stripes from ``tensor`` (ch, cw, 3)
+    float32 (J_uu, J_vv, 2 J_uv): the gradients lie across the stripe at theta from the u
+    axis, tan 2 theta = 2 J_uv / (J_uu - J_vv), and a stripe f(u - t v) has gradients along
+    (1, -t), so t = -tan theta, clipped to +-1; ``none`` where the coherence
+    ((l1 - l2) / (l1 + l2) of the eigenvalues) is below ``coherence``, 0 where |t| is below
+    ``min_slope``."""
+    ch, cw = tensor.shape[0], tensor.shape[1]
+    out = np.full((ch, cw), none, np.float32)
+    for i in range(ch):
+        for j in range(cw):
+            juu, jvv, juv2 = tensor[i, j, 0], tensor[i, j, 1], tensor[i, j, 2]
+            diff = juu - jvv
+            mag = np.sqrt(diff * diff + juv2 * juv2)
+            if not mag >= coherence * (juu + jvv) + 1e-12:
+                continue
+            # tan theta = sin 2 theta / (1 + cos 2 theta) = 2 J_uv / (J_uu - J_vv + mag)
+            den = diff + mag
+            t = -juv2 / den if den > 0 else (-1.0 if juv2 > 0 else 1.0)
+            t = min(max(t, -1.0), 1.0)
+            out[i, j] = t if abs(t) >= min_slope else 0.0
     return out
