@@ -798,10 +798,15 @@ def merge_dots(row_dots: F32, col_dots: F32, u: F64, v: F64, stripe_width_px: fl
     if u.size == 0:
         return row_dots
     h, w = row_dots.shape
-    mark = np.zeros((h, w), np.uint8)
-    mark[np.clip(np.rint(v).astype(np.intp), 0, h - 1), np.clip(u.astype(np.intp), 0, w - 1)] = 1
+    r = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
+    c = np.clip(u.astype(np.intp), 0, w - 1)
     rad = max(1, math.ceil(_DOT_REACH_WIDTHS * stripe_width_px))
+    # only the centres' bounding box, widened by the reach, can be near one
+    r0, r1 = max(int(r.min()) - rad, 0), min(int(r.max()) + rad + 1, h)
+    c0, c1 = max(int(c.min()) - rad, 0), min(int(c.max()) + rad + 1, w)
+    mark = np.zeros((r1 - r0, c1 - c0), np.uint8)
+    mark[r - r0, c - c0] = 1
     near = cv2.dilate(mark, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1,) * 2))
     out = row_dots.copy()
-    np.copyto(out, col_dots, where=near.view(bool))
+    np.copyto(out[r0:r1, c0:c1], col_dots[r0:r1, c0:c1], where=near.view(bool))
     return out
