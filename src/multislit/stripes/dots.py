@@ -125,31 +125,52 @@ def find_dots(
     if not (math.isfinite(k_sigma) and k_sigma >= 0):
         raise SlitExtractionError(f"k_sigma must be >= 0, got {k_sigma!r}")
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
-    s = gaussian_f32(d, sigma)
-    thr = k_sigma * smoothed_noise(noise_sigma, sigma)
+    thr = np.float32(k_sigma * smoothed_noise(noise_sigma, sigma))
     floor = 1e-3 * float(thr) if thr > 0 else 1e-6
-    cap = _PEAKS_FIRST
-    while True:
-        u, v, peak = np.empty(cap), np.empty(cap), np.empty(cap)
-        n = _local_maxima(s, np.float32(thr), floor, u, v, peak)
-        if n <= cap:
-            return DotCentres(u[:n], v[:n], peak[:n])
-        cap = n
+    # the smoothing and its maxima a strip of rows at a time, while the strip is in the cache:
+    # each strip smoothed with the rows its kernel and the maxima reach beyond it, so its own
+    # rows take the values the whole image's smoothing gives them
+    src, g = _filterable(d), _gaussian_kernel(sigma)
+    h = d.shape[0]
+    reach = len(g) // 2 + 1
+    u, v, peak = np.empty(_PEAKS_FIRST), np.empty(_PEAKS_FIRST), np.empty(_PEAKS_FIRST)
+    n = 0
+    for r0 in range(0, h, _STRIP_ROWS):
+        r1 = min(r0 + _STRIP_ROWS, h)
+        a, b = max(r0 - reach, 0), min(r1 + reach, h)
+        s = cv2.sepFilter2D(src[a:b], cv2.CV_32F, g, g)
+        while True:
+            m = _local_maxima(s, max(r0, 1) - a, min(r1, h - 1) - a, a, thr, floor, u, v, peak, n)
+            if m <= len(u):
+                break
+            u, v, peak = (np.concatenate([x[:n], np.empty(2 * m - n)]) for x in (u, v, peak))
+        n = m
+    return DotCentres(u[:n], v[:n], peak[:n])
 
 
-#: :func:`find_dots` makes room for this many dots first (more: it runs again with room for all).
+#: :func:`find_dots` makes room for this many dots first (more: it makes room for twice those
+#: found when they fill it) ...
 _PEAKS_FIRST = 1 << 14
+#: ... and smooths the dot image and finds its maxima this many rows at a time.
+_STRIP_ROWS = 128
 
 
 def gaussian_f32(img: NDArray, sigma: float) -> F32:
     """(H, W) float32: ``img`` (H, W) smoothed by a Gaussian of ``sigma`` px reaching
     :data:`_GAUSS_REACH` sigmas (OpenCV's kernel size for 8-bit data; reflected at the border),
     8- and 16-bit data filtered straight into float32, without a float copy first."""
-    taps = round(2.0 * _GAUSS_REACH * sigma + 1.0) | 1
-    g = cv2.getGaussianKernel(taps, sigma, cv2.CV_32F)
-    if img.dtype not in (np.uint8, np.uint16):
-        img = img.astype(np.float32, copy=False)
-    return cv2.sepFilter2D(img, cv2.CV_32F, g, g)
+    g = _gaussian_kernel(sigma)
+    return cv2.sepFilter2D(_filterable(img), cv2.CV_32F, g, g)
+
+
+def _gaussian_kernel(sigma: float) -> F32:
+    """(T, 1) float32: :func:`gaussian_f32`'s Gaussian, T = 2 * 3 sigma + 1 rounded to odd."""
+    return cv2.getGaussianKernel(round(2.0 * _GAUSS_REACH * sigma + 1.0) | 1, sigma, cv2.CV_32F)
+
+
+def _filterable(img: NDArray) -> NDArray:
+    """``img`` as OpenCV's filters read it: 8- and 16-bit data as they are, the rest float32."""
+    return img if img.dtype in (np.uint8, np.uint16) else img.astype(np.float32, copy=False)
 
 
 #: :func:`gaussian_f32`'s kernel reaches this many sigmas either side (its tails beyond hold
@@ -157,7 +178,7 @@ def gaussian_f32(img: NDArray, sigma: float) -> F32:
 _GAUSS_REACH = 3.0
 
 
-def nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
+def _nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
     """NaN into ``out`` (H, W) at the pixels within the disc of ``radius`` px (OpenCV's
     elliptic structuring element) of every pixel of ``img`` (H, W) at or above ``level`` (None:
     none): a smoothing of ``img`` does not show a dot there."""
@@ -193,19 +214,19 @@ def _nan_around(mask, disc, out):
 
 
 @njit(cache=True)
-def _local_maxima(s, thr, floor, u, v, peak):
-    """The local maxima of ``s`` (H, W) above ``thr`` (at least each of their 8 neighbours; not
-    on the image's edge), row by row: their centres (:func:`_log_vertex` along each axis, the
-    values taken as at least ``floor``) into ``u``, ``v`` and ``s`` there into ``peak`` (C,)
-    each; returns how many there are (more than C: the first C written). Each row's maxima are
-    marked first in a loop without branches, which the compiler vectorises."""
-    h, w = s.shape
+def _local_maxima(s, r_lo, r_hi, row0, thr, floor, u, v, peak, n):
+    """The local maxima of ``s`` (R, W) in its rows ``r_lo`` to ``r_hi`` - 1 above ``thr`` (at
+    least each of their 8 neighbours; not in the first or last column), row by row: their
+    centres (:func:`_log_vertex` along each axis, the values taken as at least ``floor``; the
+    rows counted from ``row0``) into ``u``, ``v`` and ``s`` there into ``peak`` (C,) each from
+    entry ``n`` on; returns ``n`` and how many there are (more than C: up to C written). Each
+    row's maxima are marked first in a loop without branches, which the compiler vectorises."""
+    w = s.shape[1]
     cap = u.shape[0]
     nw = (w + 7) // 8
     mark = np.zeros(8 * nw, np.uint8)
     words = mark.view(np.uint64)  # the marks 8 at a time: the rows' empty stretches skipped
-    n = 0
-    for r in range(1, h - 1):
+    for r in range(r_lo, r_hi):
         up, row, down = s[r - 1], s[r], s[r + 1]
         for c in range(1, w - 1):
             x = row[c]
@@ -226,9 +247,8 @@ def _local_maxima(s, thr, floor, u, v, peak):
                     u[n] = c + _log_vertex(
                         math.log(max(row[c - 1], floor)), lc, math.log(max(row[c + 1], floor))
                     )
-                    v[n] = r + _log_vertex(
-                        math.log(max(up[c], floor)), lc, math.log(max(down[c], floor))
-                    )
+                    dv = _log_vertex(math.log(max(up[c], floor)), lc, math.log(max(down[c], floor)))
+                    v[n] = row0 + r + dv
                     peak[n] = x
                 n += 1
     return n
@@ -660,7 +680,7 @@ def dot_response(
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
     sm = gaussian_f32(img, sigma)
     reach = RESPONSE_REACH * sigma + 1.0
-    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
+    _nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
     # the noise, beside the stripes
     pick, off = _beside_draw(len(u), _NOISE_SAMPLES, spread_px, 0)
     # in the centres' order (by row): the image read as it lies in memory
@@ -759,7 +779,7 @@ def sharp_image(plane: ArrayLike, saturation_level: float | None = None) -> F32:
     within a pixel or two of the pixels at or above ``saturation_level`` (None: none)."""
     img = np.asarray(plane)
     sharp = gaussian_f32(img, SHARP_SIGMA)
-    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * SHARP_SIGMA)) + 1, sharp)
+    _nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * SHARP_SIGMA)) + 1, sharp)
     return sharp
 
 
