@@ -631,15 +631,24 @@ def _beside(u, v, angle, pick, off, pu, pv, a):
 @njit(cache=True)
 def _beside_responses(smoothed, reach, u, v, angle, pick, off, zone_map, resp, level, zone):
     """The dots' response (:func:`response_at`) and its level at the places beside the stripes
-    (:func:`_beside_at` of the centres ``pick`` (M,) by ``off`` (M,)) into ``resp``, ``level``
+    (:func:`_beside_at` of the distinct centres ``pick`` (M,) by ``off`` (M,)), taken in the
+    centres' order (the image read as it lies in memory, by row), into ``resp``, ``level``
     (M,), and their zone (``zone_map`` (H, W) uint8 at their pixel) into ``zone`` (M,)."""
     h, w = zone_map.shape
+    slot = np.full(u.shape[0], -1, np.int64)
     for i in range(pick.shape[0]):
-        pu, pv, a = _beside_at(u, v, angle, pick[i], off[i])
+        slot[pick[i]] = i
+    i = 0
+    for k in range(u.shape[0]):
+        j = slot[k]
+        if j < 0:
+            continue
+        pu, pv, a = _beside_at(u, v, angle, k, off[j])
         resp[i], level[i] = response_at(smoothed, pu, pv, math.sin(a), math.cos(a), reach)
         r = min(max(int(np.rint(pv)), 0), h - 1)
         c = min(max(int(np.rint(pu)), 0), w - 1)
         zone[i] = zone_map[r, c]
+        i += 1
 
 
 def stripe_spacing(u: F64, v: F64) -> float:
@@ -683,9 +692,6 @@ def dot_response(
     _nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
     # the noise, beside the stripes
     pick, off = _beside_draw(len(u), _NOISE_SAMPLES, spread_px, 0)
-    # in the centres' order (by row): the image read as it lies in memory
-    o = np.argsort(pick)
-    pick, off = pick[o], off[o]
     resp, level = np.empty(len(pick)), np.empty(len(pick))
     zone = np.empty(len(pick), np.uint8)
     _beside_responses(sm, reach, u, v, np.asarray(angle, np.float64), pick, off,
