@@ -318,28 +318,38 @@ def _bucket(u, v, cell, nx, ny, order, start):
 
 
 @njit(cache=True)
-def _stripe_peak_at(r, c, pr, pc, peak, disc, order, start, nx, ny, cell, out):
-    """Per pixel (``r``, ``c``) (M,): the largest stripe ``peak`` (K,) whose centre's pixel
-    (``pr``, ``pc``) (K,) lies at an offset where ``disc`` (2R+1, 2R+1) is set, into ``out``
-    (M,) (0 where none does); the centres' pixels in the grid (``order``, ``start``, ``nx``,
-    ``ny``) of ``cell`` px (:func:`point_grid`)."""
+def _speckle_test(du, dv, dpeak, zone, pr, pc, peak, disc, order, start, nx, ny, cell, min_ratio,
+                  keep, near):  # fmt: skip
+    """Per dot (``du``, ``dv`` px, ``dpeak`` (M,)): whether its pixel is ``near`` a stripe
+    (``zone`` (H, W) uint8 set there) and whether to ``keep`` it (M,) each: clear of the
+    stripes, or its peak at least ``min_ratio`` of the largest stripe ``peak`` (K,) whose
+    centre's pixel (``pr``, ``pc``) (K,) lies at an offset where ``disc`` (2R+1, 2R+1) is set
+    (0 where none does); the centres' pixels in the grid (``order``, ``start``, ``nx``, ``ny``)
+    of ``cell`` px (:func:`point_grid`)."""
+    h, w = zone.shape
     rad = disc.shape[0] // 2
-    for i in range(r.shape[0]):
+    for i in range(du.shape[0]):
+        r = min(max(int(np.rint(dv[i])), 0), h - 1)
+        c = min(max(int(np.rint(du[i])), 0), w - 1)
+        near[i] = zone[r, c] != 0
+        if not near[i]:
+            keep[i] = True
+            continue
         best = 0.0
-        cx0 = max(0, int((c[i] - rad) / cell))
-        cx1 = min(nx - 1, int((c[i] + rad) / cell))
-        cy0 = max(0, int((r[i] - rad) / cell))
-        cy1 = min(ny - 1, int((r[i] + rad) / cell))
+        cx0 = max(0, int((c - rad) / cell))
+        cx1 = min(nx - 1, int((c + rad) / cell))
+        cy0 = max(0, int((r - rad) / cell))
+        cy1 = min(ny - 1, int((r + rad) / cell))
         for cy in range(cy0, cy1 + 1):
             for cx in range(cx0, cx1 + 1):
                 g = cy * nx + cx
                 for e in range(start[g], start[g + 1]):
                     k = order[e]
-                    dr = pr[k] - r[i]
-                    dc = pc[k] - c[i]
+                    dr = pr[k] - r
+                    dc = pc[k] - c
                     if abs(dr) <= rad and abs(dc) <= rad and disc[dr + rad, dc + rad]:
                         best = max(best, peak[k])
-        out[i] = best
+        keep[i] = dpeak[i] >= min_ratio * best
 
 
 def dots_off_stripes(
@@ -364,9 +374,6 @@ def dots_off_stripes(
     near : (M',) bool, the kept dots in ``near_zone``
     """
     h, w = near_zone.shape
-    r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
-    near = near_zone[r, c]
     # the stripe centres' pixels, in a grid of cells about the disc's size
     rad = max(1, int(math.ceil(clearance_px)))
     pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
@@ -374,20 +381,11 @@ def dots_off_stripes(
     cell = float(2 * rad + 1)
     order, start, nx, ny = point_grid(pc, pr, (h, w), cell)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-    sp = np.zeros(int(np.count_nonzero(near)))
-    _stripe_peak_at(r[near], c[near], pr, pc, np.asarray(peak, np.float64), disc, order, start,
-                    nx, ny, cell, sp)  # fmt: skip
-    return _speckle_free(dots, near, sp, min_ratio)
-
-
-def _speckle_free(
-    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: F64, min_ratio: float
-) -> tuple[DotCentres, NDArray[np.bool_]]:
-    """The dots kept (those not ``near`` (M,) a stripe, and those whose peak reaches
-    ``min_ratio`` of the stripe's peak beside them, ``stripe_peak`` (count of near,)) and
-    which of them are near one."""
-    keep = ~near
-    keep[near] = dots.peak[near] >= min_ratio * stripe_peak
+    keep = np.empty(len(dots), bool)
+    near = np.empty(len(dots), bool)
+    _speckle_test(dots.u, dots.v, dots.peak, np.ascontiguousarray(near_zone).view(np.uint8), pr,
+                  pc, np.asarray(peak, np.float64), disc, order, start, nx, ny, cell,
+                  float(min_ratio), keep, near)  # fmt: skip
     return dots.subset(keep), near[keep]
 
 
