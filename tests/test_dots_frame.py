@@ -16,11 +16,11 @@ from multislit.identify.evidence import (
 )
 from multislit.stripes.dots import (
     DotCentres,
+    _nan_near_clipped,
     _response_noise,
     dots_off_stripes,
     find_dots,
     gaussian_f32,
-    nan_near_clipped,
     near_stripes,
     point_grid,
 )
@@ -48,7 +48,7 @@ def test_find_dots_takes_every_local_maximum_above_the_threshold():
     above the threshold (off the image's edge), centred by the parabola through the logarithms
     of their neighbours: checked on noise, where maxima touch and plateaus occur."""
     rng = np.random.default_rng(4)
-    img = np.round(rng.gamma(0.6, 3.0, (90, 120))).astype(np.float32)
+    img = np.round(rng.gamma(0.6, 3.0, (290, 120))).astype(np.float32)  # three strips of rows
     noise, size, k = 1.0, 2.1, 4.0
     dots = find_dots(img, noise, size, k_sigma=k)
     sigma = size / 2.3548200450309493
@@ -129,12 +129,12 @@ def test_nan_near_clipped_is_the_dilated_clipped_pixels(dtype):
     img[0, 0] = img[39, 25] = img[17, 49] = img[20, 20] = img[21, 22] = 250
     for radius in (1, 2, 3):
         out = np.zeros(img.shape, np.float32)
-        nan_near_clipped(img, 249.5, radius, out)
+        _nan_near_clipped(img, 249.5, radius, out)
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
         want = cv2.dilate((img >= 249.5).astype(np.uint8), disc) > 0
         np.testing.assert_array_equal(np.isnan(out), want)
     out = np.zeros(img.shape, np.float32)
-    nan_near_clipped(img, None, 2, out)
+    _nan_near_clipped(img, None, 2, out)
     assert not np.isnan(out).any()
 
 

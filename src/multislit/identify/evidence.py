@@ -195,8 +195,8 @@ def false_match_map(
 def _dot_densities(zone, u, v, near, block, half, out):
     """The observed dots' density (1 / px^2) of each zone around each block, into ``out`` (2,
     Hb, Wb): the dots (``u``, ``v``, ``near`` (M,)) and the pixels (``zone`` (H, W) uint8, 1
-    near a stripe) of the zone in the (2 ``half`` + 1)-block square around the block, from
-    their integral images, the frame's density weighing as much as :data:`_PRIOR_AREA` px."""
+    near a stripe) of the zone in the (2 ``half`` + 1)-block square around the block (nothing
+    beyond the image), the frame's density weighing as much as :data:`_PRIOR_AREA` px."""
     h, w = zone.shape
     hb, wb = out.shape[1], out.shape[2]
     # per block, side by side: the dots of each zone (0 clear, 1 near), the pixels of each

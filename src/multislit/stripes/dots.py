@@ -125,31 +125,52 @@ def find_dots(
     if not (math.isfinite(k_sigma) and k_sigma >= 0):
         raise SlitExtractionError(f"k_sigma must be >= 0, got {k_sigma!r}")
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
-    s = gaussian_f32(d, sigma)
-    thr = k_sigma * smoothed_noise(noise_sigma, sigma)
+    thr = np.float32(k_sigma * smoothed_noise(noise_sigma, sigma))
     floor = 1e-3 * float(thr) if thr > 0 else 1e-6
-    cap = _PEAKS_FIRST
-    while True:
-        u, v, peak = np.empty(cap), np.empty(cap), np.empty(cap)
-        n = _local_maxima(s, np.float32(thr), floor, u, v, peak)
-        if n <= cap:
-            return DotCentres(u[:n], v[:n], peak[:n])
-        cap = n
+    # the smoothing and its maxima a strip of rows at a time, while the strip is in the cache:
+    # each strip smoothed with the rows its kernel and the maxima reach beyond it, so its own
+    # rows take the values the whole image's smoothing gives them
+    src, g = _filterable(d), _gaussian_kernel(sigma)
+    h = d.shape[0]
+    reach = len(g) // 2 + 1
+    u, v, peak = np.empty(_PEAKS_FIRST), np.empty(_PEAKS_FIRST), np.empty(_PEAKS_FIRST)
+    n = 0
+    for r0 in range(0, h, _STRIP_ROWS):
+        r1 = min(r0 + _STRIP_ROWS, h)
+        a, b = max(r0 - reach, 0), min(r1 + reach, h)
+        s = cv2.sepFilter2D(src[a:b], cv2.CV_32F, g, g)
+        while True:
+            m = _local_maxima(s, max(r0, 1) - a, min(r1, h - 1) - a, a, thr, floor, u, v, peak, n)
+            if m <= len(u):
+                break
+            u, v, peak = (np.concatenate([x[:n], np.empty(2 * m - n)]) for x in (u, v, peak))
+        n = m
+    return DotCentres(u[:n], v[:n], peak[:n])
 
 
-#: :func:`find_dots` makes room for this many dots first (more: it runs again with room for all).
+#: :func:`find_dots` makes room for this many dots first (more: it makes room for twice those
+#: found when they fill it) ...
 _PEAKS_FIRST = 1 << 14
+#: ... and smooths the dot image and finds its maxima this many rows at a time.
+_STRIP_ROWS = 128
 
 
 def gaussian_f32(img: NDArray, sigma: float) -> F32:
     """(H, W) float32: ``img`` (H, W) smoothed by a Gaussian of ``sigma`` px reaching
     :data:`_GAUSS_REACH` sigmas (OpenCV's kernel size for 8-bit data; reflected at the border),
     8- and 16-bit data filtered straight into float32, without a float copy first."""
-    taps = round(2.0 * _GAUSS_REACH * sigma + 1.0) | 1
-    g = cv2.getGaussianKernel(taps, sigma, cv2.CV_32F)
-    if img.dtype not in (np.uint8, np.uint16):
-        img = img.astype(np.float32, copy=False)
-    return cv2.sepFilter2D(img, cv2.CV_32F, g, g)
+    g = _gaussian_kernel(sigma)
+    return cv2.sepFilter2D(_filterable(img), cv2.CV_32F, g, g)
+
+
+def _gaussian_kernel(sigma: float) -> F32:
+    """(T, 1) float32: :func:`gaussian_f32`'s Gaussian, T = 2 * 3 sigma + 1 rounded to odd."""
+    return cv2.getGaussianKernel(round(2.0 * _GAUSS_REACH * sigma + 1.0) | 1, sigma, cv2.CV_32F)
+
+
+def _filterable(img: NDArray) -> NDArray:
+    """``img`` as OpenCV's filters read it: 8- and 16-bit data as they are, the rest float32."""
+    return img if img.dtype in (np.uint8, np.uint16) else img.astype(np.float32, copy=False)
 
 
 #: :func:`gaussian_f32`'s kernel reaches this many sigmas either side (its tails beyond hold
@@ -157,7 +178,7 @@ def gaussian_f32(img: NDArray, sigma: float) -> F32:
 _GAUSS_REACH = 3.0
 
 
-def nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
+def _nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) -> None:
     """NaN into ``out`` (H, W) at the pixels within the disc of ``radius`` px (OpenCV's
     elliptic structuring element) of every pixel of ``img`` (H, W) at or above ``level`` (None:
     none): a smoothing of ``img`` does not show a dot there."""
@@ -193,19 +214,19 @@ def _nan_around(mask, disc, out):
 
 
 @njit(cache=True)
-def _local_maxima(s, thr, floor, u, v, peak):
-    """The local maxima of ``s`` (H, W) above ``thr`` (at least each of their 8 neighbours; not
-    on the image's edge), row by row: their centres (:func:`_log_vertex` along each axis, the
-    values taken as at least ``floor``) into ``u``, ``v`` and ``s`` there into ``peak`` (C,)
-    each; returns how many there are (more than C: the first C written). Each row's maxima are
-    marked first in a loop without branches, which the compiler vectorises."""
-    h, w = s.shape
+def _local_maxima(s, r_lo, r_hi, row0, thr, floor, u, v, peak, n):
+    """The local maxima of ``s`` (R, W) in its rows ``r_lo`` to ``r_hi`` - 1 above ``thr`` (at
+    least each of their 8 neighbours; not in the first or last column), row by row: their
+    centres (:func:`_log_vertex` along each axis, the values taken as at least ``floor``; the
+    rows counted from ``row0``) into ``u``, ``v`` and ``s`` there into ``peak`` (C,) each from
+    entry ``n`` on; returns ``n`` and how many there are (more than C: up to C written). Each
+    row's maxima are marked first in a loop without branches, which the compiler vectorises."""
+    w = s.shape[1]
     cap = u.shape[0]
     nw = (w + 7) // 8
     mark = np.zeros(8 * nw, np.uint8)
     words = mark.view(np.uint64)  # the marks 8 at a time: the rows' empty stretches skipped
-    n = 0
-    for r in range(1, h - 1):
+    for r in range(r_lo, r_hi):
         up, row, down = s[r - 1], s[r], s[r + 1]
         for c in range(1, w - 1):
             x = row[c]
@@ -226,9 +247,8 @@ def _local_maxima(s, thr, floor, u, v, peak):
                     u[n] = c + _log_vertex(
                         math.log(max(row[c - 1], floor)), lc, math.log(max(row[c + 1], floor))
                     )
-                    v[n] = r + _log_vertex(
-                        math.log(max(up[c], floor)), lc, math.log(max(down[c], floor))
-                    )
+                    dv = _log_vertex(math.log(max(up[c], floor)), lc, math.log(max(down[c], floor)))
+                    v[n] = row0 + r + dv
                     peak[n] = x
                 n += 1
     return n
@@ -298,28 +318,38 @@ def _bucket(u, v, cell, nx, ny, order, start):
 
 
 @njit(cache=True)
-def _stripe_peak_at(r, c, pr, pc, peak, disc, order, start, nx, ny, cell, out):
-    """Per pixel (``r``, ``c``) (M,): the largest stripe ``peak`` (K,) whose centre's pixel
-    (``pr``, ``pc``) (K,) lies at an offset where ``disc`` (2R+1, 2R+1) is set, into ``out``
-    (M,) (0 where none does); the centres' pixels in the grid (``order``, ``start``, ``nx``,
-    ``ny``) of ``cell`` px (:func:`point_grid`)."""
+def _speckle_test(du, dv, dpeak, zone, pr, pc, peak, disc, order, start, nx, ny, cell, min_ratio,
+                  keep, near):  # fmt: skip
+    """Per dot (``du``, ``dv`` px, ``dpeak`` (M,)): whether its pixel is ``near`` a stripe
+    (``zone`` (H, W) uint8 set there) and whether to ``keep`` it (M,) each: clear of the
+    stripes, or its peak at least ``min_ratio`` of the largest stripe ``peak`` (K,) whose
+    centre's pixel (``pr``, ``pc``) (K,) lies at an offset where ``disc`` (2R+1, 2R+1) is set
+    (0 where none does); the centres' pixels in the grid (``order``, ``start``, ``nx``, ``ny``)
+    of ``cell`` px (:func:`point_grid`)."""
+    h, w = zone.shape
     rad = disc.shape[0] // 2
-    for i in range(r.shape[0]):
+    for i in range(du.shape[0]):
+        r = min(max(int(np.rint(dv[i])), 0), h - 1)
+        c = min(max(int(np.rint(du[i])), 0), w - 1)
+        near[i] = zone[r, c] != 0
+        if not near[i]:
+            keep[i] = True
+            continue
         best = 0.0
-        cx0 = max(0, int((c[i] - rad) / cell))
-        cx1 = min(nx - 1, int((c[i] + rad) / cell))
-        cy0 = max(0, int((r[i] - rad) / cell))
-        cy1 = min(ny - 1, int((r[i] + rad) / cell))
+        cx0 = max(0, int((c - rad) / cell))
+        cx1 = min(nx - 1, int((c + rad) / cell))
+        cy0 = max(0, int((r - rad) / cell))
+        cy1 = min(ny - 1, int((r + rad) / cell))
         for cy in range(cy0, cy1 + 1):
             for cx in range(cx0, cx1 + 1):
                 g = cy * nx + cx
                 for e in range(start[g], start[g + 1]):
                     k = order[e]
-                    dr = pr[k] - r[i]
-                    dc = pc[k] - c[i]
+                    dr = pr[k] - r
+                    dc = pc[k] - c
                     if abs(dr) <= rad and abs(dc) <= rad and disc[dr + rad, dc + rad]:
                         best = max(best, peak[k])
-        out[i] = best
+        keep[i] = dpeak[i] >= min_ratio * best
 
 
 def dots_off_stripes(
@@ -344,9 +374,6 @@ def dots_off_stripes(
     near : (M',) bool, the kept dots in ``near_zone``
     """
     h, w = near_zone.shape
-    r = np.clip(np.rint(dots.v).astype(np.intp), 0, h - 1)
-    c = np.clip(np.rint(dots.u).astype(np.intp), 0, w - 1)
-    near = near_zone[r, c]
     # the stripe centres' pixels, in a grid of cells about the disc's size
     rad = max(1, int(math.ceil(clearance_px)))
     pr = np.clip(np.rint(v).astype(np.intp), 0, h - 1)
@@ -354,20 +381,11 @@ def dots_off_stripes(
     cell = float(2 * rad + 1)
     order, start, nx, ny = point_grid(pc, pr, (h, w), cell)
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
-    sp = np.zeros(int(np.count_nonzero(near)))
-    _stripe_peak_at(r[near], c[near], pr, pc, np.asarray(peak, np.float64), disc, order, start,
-                    nx, ny, cell, sp)  # fmt: skip
-    return _speckle_free(dots, near, sp, min_ratio)
-
-
-def _speckle_free(
-    dots: DotCentres, near: NDArray[np.bool_], stripe_peak: F64, min_ratio: float
-) -> tuple[DotCentres, NDArray[np.bool_]]:
-    """The dots kept (those not ``near`` (M,) a stripe, and those whose peak reaches
-    ``min_ratio`` of the stripe's peak beside them, ``stripe_peak`` (count of near,)) and
-    which of them are near one."""
-    keep = ~near
-    keep[near] = dots.peak[near] >= min_ratio * stripe_peak
+    keep = np.empty(len(dots), bool)
+    near = np.empty(len(dots), bool)
+    _speckle_test(dots.u, dots.v, dots.peak, np.ascontiguousarray(near_zone).view(np.uint8), pr,
+                  pc, np.asarray(peak, np.float64), disc, order, start, nx, ny, cell,
+                  float(min_ratio), keep, near)  # fmt: skip
     return dots.subset(keep), near[keep]
 
 
@@ -611,15 +629,24 @@ def _beside(u, v, angle, pick, off, pu, pv, a):
 @njit(cache=True)
 def _beside_responses(smoothed, reach, u, v, angle, pick, off, zone_map, resp, level, zone):
     """The dots' response (:func:`response_at`) and its level at the places beside the stripes
-    (:func:`_beside_at` of the centres ``pick`` (M,) by ``off`` (M,)) into ``resp``, ``level``
+    (:func:`_beside_at` of the distinct centres ``pick`` (M,) by ``off`` (M,)), taken in the
+    centres' order (the image read as it lies in memory, by row), into ``resp``, ``level``
     (M,), and their zone (``zone_map`` (H, W) uint8 at their pixel) into ``zone`` (M,)."""
     h, w = zone_map.shape
+    slot = np.full(u.shape[0], -1, np.int64)
     for i in range(pick.shape[0]):
-        pu, pv, a = _beside_at(u, v, angle, pick[i], off[i])
+        slot[pick[i]] = i
+    i = 0
+    for k in range(u.shape[0]):
+        j = slot[k]
+        if j < 0:
+            continue
+        pu, pv, a = _beside_at(u, v, angle, k, off[j])
         resp[i], level[i] = response_at(smoothed, pu, pv, math.sin(a), math.cos(a), reach)
         r = min(max(int(np.rint(pv)), 0), h - 1)
         c = min(max(int(np.rint(pu)), 0), w - 1)
         zone[i] = zone_map[r, c]
+        i += 1
 
 
 def stripe_spacing(u: F64, v: F64) -> float:
@@ -660,12 +687,9 @@ def dot_response(
     sigma = max(_MIN_SIGMA, float(dot_size_px) / FWHM_PER_SIGMA)
     sm = gaussian_f32(img, sigma)
     reach = RESPONSE_REACH * sigma + 1.0
-    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
+    _nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * sigma)), sm)
     # the noise, beside the stripes
     pick, off = _beside_draw(len(u), _NOISE_SAMPLES, spread_px, 0)
-    # in the centres' order (by row): the image read as it lies in memory
-    o = np.argsort(pick)
-    pick, off = pick[o], off[o]
     resp, level = np.empty(len(pick)), np.empty(len(pick))
     zone = np.empty(len(pick), np.uint8)
     _beside_responses(sm, reach, u, v, np.asarray(angle, np.float64), pick, off,
@@ -759,7 +783,7 @@ def sharp_image(plane: ArrayLike, saturation_level: float | None = None) -> F32:
     within a pixel or two of the pixels at or above ``saturation_level`` (None: none)."""
     img = np.asarray(plane)
     sharp = gaussian_f32(img, SHARP_SIGMA)
-    nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * SHARP_SIGMA)) + 1, sharp)
+    _nan_near_clipped(img, saturation_level, int(math.ceil(2.0 * SHARP_SIGMA)) + 1, sharp)
     return sharp
 
 
