@@ -700,8 +700,9 @@ def separate_validated(
     ``bg``: the row background (:func:`background_validated`) if already made; ``noise``:
     :func:`noise_from_difference` of ``img`` if already known;
     ``lean_decimation``: the cell (px) of the lean map the opening follows the stripes by
-    (:func:`~multislit.stripes.openings.stripe_opening`); ``keep_ends``: the refill keeps the
-    stripes' ends (:func:`fill_dots`).
+    (:func:`~multislit.stripes.openings.stripe_opening`) and of the slopes the dots are
+    refilled along (:func:`~multislit.stripes.slope.slope_cells`); ``keep_ends``: the refill
+    keeps the stripes' ends (:func:`fill_dots`).
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
     if bg is None:
