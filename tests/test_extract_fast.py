@@ -27,6 +27,7 @@ from multislit.stripes.openings import _running_extreme, stripe_opening
 from multislit.stripes.ridges import merge_dots
 from multislit.stripes.separation import (
     _at_least,
+    _median_of_counts,
     clip_level,
     fill_dots,
     mask_runs,
@@ -435,3 +436,13 @@ def test_merge_dots_equals_the_whole_images_reach():
         got = merge_dots(row_dots, col_dots, u, v, sw)
         np.testing.assert_array_equal(got, ref)
         assert (got == col_dots).sum() > 0.5 * np.pi * rad**2
+
+
+def test_median_of_counts_is_numpys_median():
+    """The median read from the values' counts (the background's lift, the noise's pair
+    differences) is NumPy's median of the values, odd and even counts alike."""
+    rng = np.random.default_rng(23)
+    for n in [*range(1, 30), 1000, 1001, 77777]:
+        for top in (3, 255, 4000):
+            x = rng.integers(0, top, n)
+            assert _median_of_counts(np.bincount(x)) == float(np.median(x))

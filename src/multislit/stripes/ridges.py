@@ -526,7 +526,8 @@ def _unbarred(
     crosses: none with b strictly between the ends and within :data:`_SAME_STRIPE_PX` of the
     line along i's end."""
     ba, bb = (np.asarray(x, np.float64) for x in barrier)
-    order = np.argsort(bb, kind="stable")
+    # any order of equal b: a gap asks whether any point of its range lies near the line
+    order = np.argsort(bb)
     ba, bb = ba[order], bb[order]
     lo = np.searchsorted(bb, b1[i], "right")
     hi = np.searchsorted(bb, b0[j], "left")

@@ -628,7 +628,12 @@ def lifted_opening_background(
     bg = row_opening_background(image, stripe_width_px)
     d = cv2.subtract(image[::_LIFT_STRIDE, ::_LIFT_STRIDE], bg[::_LIFT_STRIDE, ::_LIFT_STRIDE])
     low = d[d < LIFT_SIGMAS * noise]
-    lift = float(np.median(low)) if low.size else 0.0
+    if not low.size:
+        lift = 0.0
+    elif np.issubdtype(low.dtype, np.integer):  # from the values' counts: no sort
+        lift = _median_of_counts(np.bincount(low))
+    else:
+        lift = float(np.median(low))
     if np.issubdtype(bg.dtype, np.integer):
         lift = round(lift)
     return cv2.add(bg, np.full_like(bg, lift)) if lift > 0 else bg
@@ -695,8 +700,9 @@ def separate_validated(
     ``bg``: the row background (:func:`background_validated`) if already made; ``noise``:
     :func:`noise_from_difference` of ``img`` if already known;
     ``lean_decimation``: the cell (px) of the lean map the opening follows the stripes by
-    (:func:`~multislit.stripes.openings.stripe_opening`); ``keep_ends``: the refill keeps the
-    stripes' ends (:func:`fill_dots`).
+    (:func:`~multislit.stripes.openings.stripe_opening`) and of the slopes the dots are
+    refilled along (:func:`~multislit.stripes.slope.slope_cells`); ``keep_ends``: the refill
+    keeps the stripes' ends (:func:`fill_dots`).
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
     if bg is None:
@@ -748,6 +754,15 @@ def _pair_diff_histogram(img, levels):
     return part[0] + part[1] + part[2] + part[3]
 
 
+def _median_of_counts(counts: NDArray[np.int64]) -> float:
+    """The median (as :func:`numpy.median` gives it) of the whole numbers 0, 1, ... counted
+    ``counts[k]`` times each (at least one)."""
+    cum = np.cumsum(counts)
+    n = int(cum[-1])
+    hi = int(np.searchsorted(cum, n // 2 + 1))  # the (n // 2)-th smallest (0-based)
+    return float(hi) if n % 2 else 0.5 * (int(np.searchsorted(cum, n // 2)) + hi)
+
+
 def noise_from_difference(img: NDArray) -> float:
     """Pixel noise sigma from differences of vertical neighbours (intensity units).
 
@@ -762,10 +777,7 @@ def noise_from_difference(img: NDArray) -> float:
     """
     if img.dtype in (np.uint8, np.uint16) and img.shape[0] >= 2:
         # integer data: the median from the histogram of the differences (no sort)
-        cum = np.cumsum(_pair_diff_histogram(img, int(np.iinfo(img.dtype).max) + 1))
-        n = (img.shape[0] // 2) * img.shape[1]
-        hi = int(np.searchsorted(cum, n // 2 + 1))  # the (n // 2)-th smallest (0-based)
-        med = hi if n % 2 else 0.5 * (int(np.searchsorted(cum, n // 2)) + hi)
+        med = _median_of_counts(_pair_diff_histogram(img, int(np.iinfo(img.dtype).max) + 1))
     else:
         d = img[1::2].astype(np.float32) - img[:-1:2].astype(np.float32)
         med = float(np.median(np.abs(d)))
