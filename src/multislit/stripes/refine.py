@@ -117,9 +117,9 @@ def refine_centres(
        smoothed by a Gaussian of ``steger_scale`` stripe sigmas, by two Newton steps from the
        given centre, on the image less its row median background averaged over 2
        ``half_rows`` + 1 rows and 2 :func:`median_stride` + 1 columns, its dots refilled. That
-       slit image is made only on a strip along each segment (the Steger window's reach and
-       2 px either side of the segment's line, a least-squares line through its points over
-       3 R rows either side of each row): the dots are the pixels above the strip's opening
+       slit image is made only on a strip along each segment (the Steger window's reach, 1 px
+       for the steps and 2 px to spare either side of the segment's line, a least-squares
+       parabola through its points over 3 R rows either side of each row): the dots are the pixels above the strip's opening
        along the segment's line (vertical where it leans less than 1 px in ``length`` - 1
        rows, ``length`` the opening's, :func:`opening_length` of the dot size; along its
        digital line elsewhere) by 3 noise sigmas and 5 % (widened by 1 px), and each run of
