@@ -252,13 +252,9 @@ def _reference_refine(img, u, v, seg, sw, ds, R=None, deg="auto", max_shift=1.0,
     inner = np.minimum(r - v_first, v_last - r) - end
     active = has & (inner >= 0)
     slit, col0, where = _reference_strips(img, u, r, seg, active, sw, ds, R)
-    m = u.copy()
-    inside = np.ones(K, bool)
-    for _ in range(2):
-        d1, d2, within = _steger_on_strips(slit, col0, where, np.clip(m, 0, w - 1), ss)
-        inside &= within
-        good = d2 < 0
-        m = m + np.clip(np.where(good, -d1 / np.where(good, d2, -1.0), 0.0), -1.0, 1.0)
+    d1, d2, inside = _steger_on_strips(slit, col0, where, np.clip(u, 0, w - 1), ss)
+    good = d2 < 0
+    m = u + np.clip(np.where(good, -d1 / np.where(good, d2, -1.0), 0.0), -1.0, 1.0)
     m = np.where(active, m, u)
     row_ok = active & good & inside & (np.abs(m - u) <= max_shift)
     n = 3 if deg == "auto" else deg + 1

@@ -112,9 +112,9 @@ def test_refill_strips_matches_plain_fill():
 
 
 def test_steger_batches_give_each_point_its_own_centre():
-    """Steger's steps for many points at once (batches, a part batch at the end) give each
+    """Steger's step for many points at once (batches, a part batch at the end) gives each
     point, bit for bit, what it gets alone; near the image's borders (the strip holding the
-    clamped columns) too, and a point whose steps leave its strip is not usable."""
+    clamped columns) too, and a point whose window leaves its strip is not usable."""
     from multislit.stripes.refine import _steger_kernel
 
     rng = np.random.default_rng(13)

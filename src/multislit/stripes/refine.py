@@ -114,12 +114,14 @@ def refine_centres(
     For each point:
 
     1. Steger's centre in its row: the zero of the first derivative of the row profile
-       smoothed by a Gaussian of ``steger_scale`` stripe sigmas, by two Newton steps from the
-       given centre, on the image less its row median background averaged over 2
-       ``half_rows`` + 1 rows and 2 :func:`median_stride` + 1 columns, its dots refilled. That
-       slit image is made only on a strip along each segment (the Steger window's reach, 1 px
-       for the steps and 2 px to spare either side of the segment's line, a least-squares
-       parabola through its points over 3 R rows either side of each row): the dots are the pixels above the strip's opening
+       smoothed by a Gaussian of ``steger_scale`` stripe sigmas, by one Newton step from the
+       given centre (clamped to 1 px; the profile is symmetric about its centre, so the
+       step's error is of third order in the given centre's), on the image less its row
+       median background averaged over 2 ``half_rows`` + 1 rows and 2 :func:`median_stride`
+       + 1 columns, its dots refilled. That
+       slit image is made only on a strip along each segment (the Steger window's reach and
+       3 px to spare either side of the segment's line, a least-squares parabola through its
+       points over 3 R rows either side of each row): the dots are the pixels above the strip's opening
        along the segment's line (vertical where it leans less than 1 px in ``length`` - 1
        rows, ``length`` the opening's, :func:`opening_length` of the dot size; along its
        digital line elsewhere) by 3 noise sigmas and 5 % (widened by 1 px), and each run of
@@ -221,9 +223,8 @@ def refine_centres(
     rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
     length = opening_length(ds)
     bg = _background(img, sw, R)
-    # the strips: the Steger steps' reach (they move by at most 1 px before the last
-    # evaluation) and 2 px to spare, along the centre line of each segment; beyond its ends
-    # as far as the opening reaches
+    # the strips: the Steger window's reach and 3 px to spare, along the centre line of each
+    # segment; beyond its ends as far as the opening reaches
     half = rad + 3
     W = _BEND_WINDOWS * R
     rows, centre, slope, bounds, where = _strip_layout(
@@ -676,62 +677,56 @@ _STEGER_BATCH = 16
 
 @njit(cache=True)
 def _steger_kernel(strip, col0, where, u, idx, ss, max_shift, w):
-    """Steger's centres (K,) px and where they are usable, by two Newton steps from ``u`` on
+    """Steger's centres (K,) px and where they are usable, by one Newton step from ``u`` on
     the slit image's strips ``strip`` (N, D) float32 (the dots refilled,
-    :func:`_refill_strips`; stacked row t holds image columns
-    ``col0[t]`` .. of a ``w`` px wide image, clamped to it), for the points ``idx`` (in the
-    order of their stacked rows ``where`` (K,), so that the reads follow the memory; the other
-    points keep ``u``, not usable; so does a point whose steps would read beyond its strip)."""
+    :func:`_refill_strips`; stacked row t holds image columns ``col0[t]`` .. of a ``w`` px
+    wide image, clamped to it), for the points ``idx`` (in the order of their stacked rows
+    ``where`` (K,), so that the reads follow the memory; the other points keep ``u``, not
+    usable; so does a point whose window would reach beyond its strip). The step is clamped
+    to 1 px."""
     width = strip.shape[1]
     K = u.size
     rad = int(math.ceil(3.0 * ss)) + 1
     inv2 = 1.0 / (ss * ss)
     inv4 = inv2 * inv2
     # Gaussian weights exp(-(t / ss)^2 / 2) at t = f + k (f = c0 - x, k = -rad .. rad) as
-    # exp(-f^2 / 2 ss^2) exp(-k^2 / 2 ss^2) exp(-f / ss^2)^k: two exponentials per evaluation
+    # exp(-f^2 / 2 ss^2) exp(-k^2 / 2 ss^2) exp(-f / ss^2)^k: two exponentials per point
     gk = np.empty(2 * rad + 1)
     for k in range(-rad, rad + 1):
         gk[k + rad] = math.exp(-0.5 * k * k * inv2)
     m = u.copy()
     ok = np.zeros(K, np.bool_)
-    # the points _STEGER_BATCH at a time: each Newton step's samples for the batch, then its
-    # sums (:func:`_steger_sums`), the batch's independent sums interleaved
+    # the points _STEGER_BATCH at a time: the batch's samples, then its sums
+    # (:func:`_steger_sums`), the batch's independent sums interleaved
     nb = _STEGER_BATCH
     p = np.empty((2 * rad + 1, nb))
-    mi, fb, eb, ek = np.empty(nb), np.empty(nb), np.empty(nb), np.empty(nb)
+    fb, eb, ek = np.empty(nb), np.empty(nb), np.empty(nb)
     d1, d2 = np.empty(nb), np.empty(nb)
-    good = np.zeros(nb, np.bool_)
     inside = np.zeros(nb, np.bool_)
     for s0 in range(0, idx.size, nb):
         n = min(nb, idx.size - s0)
         for j in range(n):
-            mi[j] = u[idx[s0 + j]]
-            inside[j] = True
-        for _ in range(2):  # Newton steps
-            for j in range(n):
-                t = where[idx[s0 + j]]
-                x = min(max(mi[j], 0.0), w - 1.0)
-                c0 = int(math.floor(x))
-                f = c0 - x
-                e = math.exp(-f * inv2)
-                fb[j] = f
-                eb[j] = e
-                ek[j] = math.exp((rad - 0.5 * f) * f * inv2)  # the k = -rad factor
-                k0 = c0 - rad - col0[t]  # the first sample's column in the strip
-                if k0 < 0 or k0 + 2 * rad >= width:
-                    inside[j] = False
-                    k0 = min(max(k0, 0), width - 2 * rad - 1)
-                for k in range(2 * rad + 1):
-                    p[k, j] = float(strip[t, k0 + k])
-            _steger_sums(p, fb[:n], eb[:n], ek[:n], gk, d1[:n], d2[:n], inv2, inv4)
-            for j in range(n):
-                good[j] = d2[j] < 0
-                step = -(d1[j] * inv2) / d2[j] if good[j] else 0.0
-                mi[j] = mi[j] + min(max(step, -1.0), 1.0)
+            i = idx[s0 + j]
+            t = where[i]
+            x = min(max(u[i], 0.0), w - 1.0)
+            c0 = int(math.floor(x))
+            f = c0 - x
+            e = math.exp(-f * inv2)
+            fb[j] = f
+            eb[j] = e
+            ek[j] = math.exp((rad - 0.5 * f) * f * inv2)  # the k = -rad factor
+            k0 = c0 - rad - col0[t]  # the first sample's column in the strip
+            inside[j] = 0 <= k0 and k0 + 2 * rad < width
+            k0 = min(max(k0, 0), width - 2 * rad - 1)
+            for k in range(2 * rad + 1):
+                p[k, j] = float(strip[t, k0 + k])
+        _steger_sums(p, fb[:n], eb[:n], ek[:n], gk, d1[:n], d2[:n], inv2, inv4)
         for j in range(n):
             i = idx[s0 + j]
-            m[i] = mi[j]
-            ok[i] = good[j] and inside[j] and abs(mi[j] - u[i]) <= max_shift
+            good = d2[j] < 0
+            step = -(d1[j] * inv2) / d2[j] if good else 0.0
+            m[i] = u[i] + min(max(step, -1.0), 1.0)
+            ok[i] = good and inside[j] and abs(m[i] - u[i]) <= max_shift
     return m, ok
 
 
