@@ -49,39 +49,6 @@ def stripe_slope(hp: NDArray, sigma: float) -> NDArray[np.float32]:
     return np.clip(s, -1.0, 1.0)
 
 
-@njit(cache=True)
-def _sobel_row(hp, r, gur, gvr):
-    """Row ``r`` of cv2.Sobel's 3x3 derivatives of an integer image ``hp`` (H, W) along u and
-    v (cv2.BORDER_REFLECT_101), as float32 into ``gur``, ``gvr`` (W,): sums of integers below
-    2^24, exact in float32 in any order (so the loop runs in float32 lanes, not Numba's int64
-    ones)."""
-    h, w = hp.shape
-    ra = hp[reflect101(r - 1, h)]
-    rb = hp[r]
-    rc = hp[reflect101(r + 1, h)]
-    two = np.float32(2.0)
-    # shifted 1-D views, indices from 0: the loop vectorises
-    al, am, ar = ra[: w - 2], ra[1 : w - 1], ra[2:]
-    bl, br = rb[: w - 2], rb[2:]
-    cl, cm, cr = rc[: w - 2], rc[1 : w - 1], rc[2:]
-    ou = gur[1 : w - 1]
-    ov = gvr[1 : w - 1]
-    for q in range(w - 2):
-        a0, a1, a2 = np.float32(al[q]), np.float32(am[q]), np.float32(ar[q])
-        b0, b2 = np.float32(bl[q]), np.float32(br[q])
-        c0, c1, c2 = np.float32(cl[q]), np.float32(cm[q]), np.float32(cr[q])
-        ou[q] = (a2 - a0) + two * (b2 - b0) + (c2 - c0)
-        ov[q] = (c0 + two * c1 + c2) - (a0 + two * a1 + a2)
-    for c in (0, w - 1):  # the reflected borders
-        cl = reflect101(c - 1, w)
-        cr = reflect101(c + 1, w)
-        a0, a1, a2 = np.float32(ra[cl]), np.float32(ra[c]), np.float32(ra[cr])
-        b0, b2 = np.float32(rb[cl]), np.float32(rb[cr])
-        c0, c1, c2 = np.float32(rc[cl]), np.float32(rc[c]), np.float32(rc[cr])
-        gur[c] = (a2 - a0) + two * (b2 - b0) + (c2 - c0)
-        gvr[c] = (c0 + two * c1 + c2) - (a0 + two * a1 + a2)
-
-
 def slope_cells(hp: NDArray, sigma: float, cell: int) -> F32:
     """The stripes' lean du/dv per cell of ``cell`` x ``cell`` px: (H // cell, W // cell)
     float32, px per row, clipped to +-1; NaN where the image has no one direction (an
