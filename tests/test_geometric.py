@@ -271,7 +271,6 @@ def test_the_kernels_warm_up_frame_is_identified_by_the_geometry():
         assert ident.dots is not None and len(ident.dots) > 100
 
 
-
 def test_the_dots_are_matched_only_when_asked():
     """``match_dots=False`` leaves the identification's dots out and changes no label."""
     reference, images, rig = synthetic_rig()
@@ -281,6 +280,7 @@ def test_the_dots_are_matched_only_when_asked():
     assert without.dots is None
     np.testing.assert_array_equal(without.slit, with_dots.slit)
     np.testing.assert_array_equal(without.confidence, with_dots.confidence)
+
 
 def test_two_stripes_side_by_side_couple_once_however_long():
     """Four windows of a stripe (continuing one another) beside four of a stripe the dots
