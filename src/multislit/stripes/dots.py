@@ -185,32 +185,10 @@ def _nan_near_clipped(img: NDArray, level: float | None, radius: int, out: F32) 
     if level is None:
         return
     clipped = cv2.compare(img, float(level), cv2.CMP_GE)
+    if not cv2.countNonZero(clipped):
+        return
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-    _nan_around(clipped, disc, out)
-
-
-@njit(cache=True)
-def _nan_around(mask, disc, out):
-    """NaN into ``out`` (H, W) at the offsets where ``disc`` (2R+1, 2R+1) is set around every
-    pixel set in ``mask`` (H, W) uint8; the rows without any are passed over in one vectorised
-    test each."""
-    h, w = mask.shape
-    rad = disc.shape[0] // 2
-    for r in range(h):
-        row = mask[r]
-        any_set = np.uint8(0)
-        for c in range(w):
-            any_set |= row[c]
-        if any_set == 0:
-            continue
-        for c in range(w):
-            if row[c] == 0:
-                continue
-            for dr in range(-rad, rad + 1):
-                if 0 <= r + dr < h:
-                    for dc in range(-rad, rad + 1):
-                        if disc[dr + rad, dc + rad] and 0 <= c + dc < w:
-                            out[r + dr, c + dc] = np.nan
+    out[cv2.dilate(clipped, disc) > 0] = np.nan
 
 
 @njit(cache=True)
