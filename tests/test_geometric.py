@@ -280,6 +280,8 @@ def test_the_dots_are_matched_only_when_asked():
     assert without.dots is None
     np.testing.assert_array_equal(without.slit, with_dots.slit)
     np.testing.assert_array_equal(without.confidence, with_dots.confidence)
+    with pytest.raises(IdentificationError, match="match_dots must be True or False"):
+        identify(images[0], reference, rig, match_dots="no")
 
 
 def test_two_stripes_side_by_side_couple_once_however_long():

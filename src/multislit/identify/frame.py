@@ -60,9 +60,11 @@ def identify(
     ------
     IdentificationError
         (a ``ValueError``) if ``image`` is not a grayscale image of the reference's size,
-        ``options`` is not an IdentifyOptions, or the geometry method has no ``rig`` or is
-        given a ``previous``.
+        ``options`` is not an IdentifyOptions, ``match_dots`` is not a bool, or the geometry
+        method has no ``rig`` or is given a ``previous``.
     """
+    if not isinstance(match_dots, bool | np.bool_):
+        raise IdentificationError(f"match_dots must be True or False, got {match_dots!r}")
     opts = IdentifyOptions() if options is None else options
     if not isinstance(opts, IdentifyOptions):
         raise IdentificationError(
