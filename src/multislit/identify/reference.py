@@ -48,6 +48,14 @@ TEMPLATE_BACKGROUND = "median"
 CURVE_DEGREE = 3
 #: Dots a template holds on average when dots are matched between reference images.
 _EPIPOLE_DOTS = 12.0
+#: Pairs of dot tracks whose meeting points are tried as the epipole (:func:`_track_epipole`):
+#: with half the tracks wrong, a quarter of the pairs are both right.
+_EPIPOLE_PAIRS = 500
+#: A track whose end is this close (px) to its line through the epipole is kept however
+#: small the others' spread (the tracks' ends are sub-pixel matches).
+_EPIPOLE_TOLERANCE = 0.5
+#: Rounds of the least squares epipole over the tracks near the last one.
+_EPIPOLE_ROUNDS = 5
 #: Templates scored per matrix product in the epipole's dot search.
 _SCORE_BLOCK = 8
 #: Zeros after each row of :meth:`ReferenceSet.padded_dots` (px): more than a vector's lanes,
@@ -507,9 +515,8 @@ def estimate_epipole(
 
     For each pair of reference images and each slit, dot templates beside the slit in the first
     image are found beside the same slit in the second (a 1-D search along its curve); each
-    match is a short track whose line passes through the epipole. The epipole is the least
-    squares meeting point of all tracks (homogeneous, so it may lie far outside the image or at
-    infinity).
+    match is a short track whose line passes through the epipole. The epipole is the meeting
+    point of the tracks' lines, robust to wrong matches (:func:`_track_epipole`).
 
     Parameters
     ----------
@@ -532,31 +539,83 @@ def estimate_epipole(
             f"could not match the dots between reference images ({len(T)} matches): the "
             "reference boards must show the same dot pattern at different distances"
         )
-    p1 = np.c_[T[:, :2], np.ones(len(T))]
-    p2 = np.c_[T[:, 2:], np.ones(len(T))]
-    lines = np.cross(p1, p2)
-    length = np.linalg.norm(T[:, 2:] - T[:, :2], axis=1)
-    use = length > 0.5  # a track needs a measurable motion
-    if use.sum() < 4:
+    moving = np.linalg.norm(T[:, 2:] - T[:, :2], axis=1) > 0.5  # a measurable motion
+    if moving.sum() < 4:
         raise ReferenceImageError(
             "the dots do not move between the reference images: are the boards at different distances?"
         )
-    lines = lines[use] / np.linalg.norm(lines[use, :2], axis=1, keepdims=True)
-    # robust: iteratively drop the worst tracks
-    keep = np.ones(len(lines), bool)
-    for _ in range(5):
-        _, _, vt = np.linalg.svd(lines[keep], full_matrices=False)
-        e = vt[-1]
-        # distance of each track's points to the line through its first point and e
-        l2 = np.cross(p1[use], e[None, :])
-        l2 /= np.linalg.norm(l2[:, :2], axis=1, keepdims=True)
-        res = np.abs(np.einsum("ij,ij->i", l2, p2[use]))
-        thr = max(0.5, 3 * 1.4826 * np.median(res[keep]))
-        new = res < thr
+    return _track_epipole(T[moving])
+
+
+def _track_residuals(tracks: F64, e: F64) -> F64:
+    """(C, T) float64, px: the distance of each track's end from the line through its start and
+    each candidate epipole ``e`` (C, 3) (homogeneous); ``tracks`` (T, 4) as in
+    :func:`_track_epipole`. inf where that line is undefined (the start on the epipole)."""
+    u, v = tracks[:, 0], tracks[:, 1]
+    # the line p1 x e is ((v z - y), (x - u z), (u y - v x)); its value at p2 is -e . (p1 x p2)
+    p1 = np.c_[tracks[:, :2], np.ones(len(tracks))]
+    p2 = np.c_[tracks[:, 2:], np.ones(len(tracks))]
+    num = np.abs(e @ np.cross(p1, p2).T)
+    x, y, z = e[:, 0:1], e[:, 1:2], e[:, 2:3]
+    den = np.hypot(v[None, :] * z - y, x - u[None, :] * z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.inf)
+
+
+def _track_epipole(tracks: F64) -> tuple[F64, float]:
+    """The point that the lines of dot tracks meet at, robust to wrong tracks.
+
+    The start is the least median of squares (Rousseeuw) over the meeting points of pairs of
+    tracks (all pairs, or :data:`_EPIPOLE_PAIRS` drawn with a fixed seed when there are more):
+    the candidate whose median distance of the tracks' ends to its lines is least. It holds
+    while fewer than half of the tracks are wrong, however wrong they are. From the tracks
+    within 2.5 of its robust scale (at least ``_EPIPOLE_TOLERANCE``), the least squares point of
+    the tracks' lines (homogeneous, so it may lie far outside the image or at infinity), again
+    from the tracks within 3 robust sigmas of it, until the set no longer changes.
+
+    Parameters
+    ----------
+    tracks : (T, 4) float64, px, (u, v) at the start and (u, v) at the end of each track,
+        T >= 2, each moving
+
+    Returns
+    -------
+    epipole : (3,) homogeneous, unit norm
+    rms : float, px, RMS distance of the kept tracks' ends to the lines through their starts
+        and the epipole
+    """
+    tracks = np.asarray(tracks, np.float64)
+    m = len(tracks)
+    p1 = np.c_[tracks[:, :2], np.ones(m)]
+    p2 = np.c_[tracks[:, 2:], np.ones(m)]
+    lines = np.cross(p1, p2)
+    lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
+    i, j = np.triu_indices(m, 1)
+    if len(i) > _EPIPOLE_PAIRS:
+        pick = np.random.default_rng(0).choice(len(i), _EPIPOLE_PAIRS, replace=False)
+        i, j = i[pick], j[pick]
+    cand = np.cross(lines[i], lines[j])
+    norm = np.linalg.norm(cand, axis=1)
+    cand = cand[norm > 1e-12] / norm[norm > 1e-12, None]  # not one line twice
+    if len(cand) == 0:
+        cand = np.linalg.svd(lines, full_matrices=False)[2][-1:]
+    med = np.median(_track_residuals(tracks, cand) ** 2, axis=1)
+    best = int(np.argmin(med))
+    res = _track_residuals(tracks, cand[best : best + 1])[0]
+    # the least median of squares' scale (Rousseeuw and Leroy 1987, with its small-sample factor)
+    scale = 1.4826 * (1.0 + 5.0 / max(m - 2, 1)) * np.sqrt(med[best])
+    keep = res < max(_EPIPOLE_TOLERANCE, 2.5 * scale)
+    e = cand[best]
+    for _ in range(_EPIPOLE_ROUNDS):
+        if keep.sum() < 2:
+            break
+        e = np.linalg.svd(lines[keep], full_matrices=False)[2][-1]
+        res = _track_residuals(tracks, e[None, :])[0]
+        new = res < max(_EPIPOLE_TOLERANCE, 3 * 1.4826 * np.median(res[keep]))
         if np.array_equal(new, keep):
             break
         keep = new
-    rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+    rms = float(np.sqrt(np.mean(res[keep] ** 2))) if keep.any() else float("inf")
     return e / np.linalg.norm(e), rms
 
 
