@@ -1,6 +1,6 @@
 """The refinement's compiled strip kernels against plain formulations: the strips' layout (the
 centre line by least squares along each segment, the rows beyond its ends and the image's),
-the opening along the stripe in image coordinates and the refill of the dots along the slope,
+the opening along the centre line in image coordinates and the refill of the dots along it,
 bit for bit, and Steger's steps in batches of points; the refinement whatever the order of
 the points, and on leaning stripes with dots against the truth."""
 
@@ -18,7 +18,7 @@ from .test_slits import Truth, _errors, render
 
 
 def test_strip_layout_matches_polyfit():
-    """Each stacked row's centre line and slope are those of np.polyfit's parabola through the
+    """Each stacked row's centre line is that of np.polyfit's parabola through the
     segment's points within W rows of the row (cut at the segment's ends; beyond them the end
     row's, read at the image row the stacked row repeats), on curved segments with gaps; the
     strips are those of the segments with an active point, each point in its own row."""
@@ -31,9 +31,7 @@ def test_strip_layout_matches_polyfit():
     _, order, skey, inner = _segment_rows(seg, rows, span, 2)
     u = 20.0 + 15.0 * seg + 0.2 * rows + 4e-3 * (rows - 70.0) ** 2 + rng.normal(0, 0.3, seg.size)
     active = (seg >= 0) & (inner >= 0) & (seg != 4)  # segment 4 has no active point: no strip
-    got_rows, centre, slope, bounds, where = _strip_layout(
-        seg, order, skey, span, u, active, W, pad, h
-    )
+    got_rows, centre, bounds, where = _strip_layout(seg, order, skey, span, u, active, W, pad, h)
     kept = [g for g in np.unique(seg[seg >= 0]) if active[seg == g].any()]
     assert 4 not in kept and len(kept) == bounds.size - 1
     for s, g in enumerate(kept):
@@ -48,7 +46,6 @@ def test_strip_layout_matches_polyfit():
             sel = np.abs(rg - min(max(vr, r0), r1)) <= W
             p = np.polyfit(rg[sel] - r0, ug[sel], 2 if sel.sum() >= 3 else 1)
             x = got_rows[t[j]] - r0
-            assert abs(slope[t[j]] - np.polyval(np.polyder(p), x)) < 1e-9
             assert abs(centre[t[j]] - np.polyval(p, x)) < 1e-8
     np.testing.assert_array_equal(where < 0, ~active)
     np.testing.assert_array_equal(got_rows[where[active]], rows[active])
@@ -56,34 +53,37 @@ def test_strip_layout_matches_polyfit():
 
 def _strips(rng, n=400, d=21):
     """Random strips (N, D) float32 in three strips (one of one row), their first columns
-    stepping by -1, 0 or 1 px a row, and slopes from -1 to 1 px a row."""
+    stepping by -1, 0 or 1 px a row, and a centre line (N,) px whose slope wanders from -1 to
+    1 px a row (curved)."""
     strip = rng.normal(20, 10, (n, d)).astype(np.float32)
     bounds = np.array([0, 150, 151, n], np.int64)
     col0 = 300 + np.cumsum(rng.integers(-1, 2, n)).astype(np.int64)
-    return strip, bounds, col0, rng.uniform(-1, 1, n)
+    slope = np.clip(np.cumsum(rng.normal(0, 0.15, n)), -1, 1)
+    return strip, bounds, col0, 300.0 + np.cumsum(slope)
 
 
 def test_line_extreme_matches_pixel_by_pixel_line():
-    """The min and max over each pixel's digital line (rows within its strip, columns in
-    image coordinates, samples beyond the strip left out), made a run of rows at a time,
-    equal the pixel-by-pixel values, bit for bit; with steps of the first column and
-    leaning and upright lines."""
+    """The min and max over each pixel's digital curve along the centre line (rows within its
+    strip, columns in image coordinates, samples beyond the strip left out), made a run of rows
+    at a time, equal the pixel-by-pixel values, bit for bit; with steps of the first column
+    and leaning, curved and upright lines."""
     from multislit.stripes.refine import _line_extreme
 
     rng = np.random.default_rng(23)
-    strip, bounds, col0, slope = _strips(rng)
-    slope[200:300] = rng.uniform(-0.15, 0.15, 100)  # upright lines
+    strip, bounds, col0, centre = _strips(rng)
+    centre[200:300] = 310.0 + rng.uniform(-0.2, 0.2, 100)  # upright lines
     col0[200:260] = 310  # no steps: rows run together
     n, d = strip.shape
     strip_of = np.repeat(np.arange(bounds.size - 1), np.diff(bounds))
     for r in (1, 3):
         for take_max in (False, True):
-            got = _line_extreme(strip, col0, bounds, slope, r, take_max)
+            got = _line_extreme(strip, col0, bounds, centre, r, take_max)
             want = strip.copy()
             for t in range(n):
                 for k in range(d):
                     for j in range(-r, r + 1):
-                        q, x = t + j, slope[t] * j
+                        q = t + j
+                        x = centre[q] - centre[t] if 0 <= q < n else 0.0
                         dk = int(np.sign(x) * np.floor(abs(x) + 0.5))
                         kk = k + dk + col0[t] - col0[q] if 0 <= q < n else -1
                         if 0 <= q < n and strip_of[q] == strip_of[t] and 0 <= kk < d:
@@ -94,18 +94,18 @@ def test_line_extreme_matches_pixel_by_pixel_line():
 
 def test_refill_strips_matches_plain_fill():
     """The compiled refill equals the plain one bit for bit on dense random dots: runs
-    interpolated along the slope between strips' rows with other first columns, runs longer
+    interpolated along the centre line between strips' rows with other first columns, runs longer
     than the limit and runs at a strip's first or last row kept at the opening."""
     from multislit.stripes.refine import _refill_strips
 
     rng = np.random.default_rng(22)
-    strip, bounds, col0, slope = _strips(rng)
+    strip, bounds, col0, centre = _strips(rng)
     opened = strip - np.float32(3)
     mask = np.where(rng.random(strip.shape) < 0.45, 255, 0).astype(np.uint8)
     mask[100:140, 5] = 255  # a run longer than the limit
     mask[0] = 255  # runs at the first row
-    got = _refill_strips(strip, opened, mask, slope, col0, bounds, 10)
-    want = _plain_refill(strip, opened, mask, slope, col0, bounds, 10)
+    got = _refill_strips(strip, opened, mask, centre, col0, bounds, 10)
+    want = _plain_refill(strip, opened, mask, centre, col0, bounds, 10)
     np.testing.assert_array_equal(got, want)
     assert (got != strip).mean() > 0.15 and (got[mask == 0] == strip[mask == 0]).all()
     assert (got[100:140, 5] == opened[100:140, 5]).all()

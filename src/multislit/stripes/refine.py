@@ -121,12 +121,15 @@ def refine_centres(
        + 1 columns, its dots refilled. That
        slit image is made only on a strip along each segment (the Steger window's reach and
        3 px to spare either side of the segment's line, a least-squares parabola through its
-       points over 3 R rows either side of each row): the dots are the pixels above the strip's opening
-       along the segment's line (vertical where it leans less than 1 px in ``length`` - 1
-       rows, ``length`` the opening's, :func:`opening_length` of the dot size; along its
-       digital line elsewhere) by 3 noise sigmas and 5 % (widened by 1 px), and each run of
-       them in a column is interpolated along the line's slope from the pixels above and
-       below it, as :func:`fill_dots` does.
+       points over 3 R rows either side of each row): the dots are the pixels above the
+       strip's opening along the segment's line by 3 noise sigmas and 5 % (widened by 1 px),
+       and each run of them in a column is interpolated along the line from the pixels above
+       and below it, as :func:`fill_dots` does along the stripe's slope. The opening's line
+       (``length`` rows, :func:`opening_length` of the dot size) and the refill's reads follow
+       the segment's line itself, its curve included: on a curved stripe (the arcs on a
+       sphere) a straight line along the slope leaves the stripe towards the outside of the
+       curve at its ends, the opening then lies below the stripe's outer flank, which is taken
+       for dots and refilled lower, and the centre moves to the inside of the curve.
     2. Along the stripe: a polynomial in v fitted by least squares to the Steger centres of
        the *same segment* in rows v - R .. v + R (R = ``half_rows``), evaluated at v. The
        window is symmetric about v, shrunk near the segment's ends, and never takes rows of
@@ -227,22 +230,21 @@ def refine_centres(
     # segment; beyond its ends as far as the opening reaches
     half = rad + 3
     W = _BEND_WINDOWS * R
-    rows, centre, slope, bounds, where = _strip_layout(
+    rows, centre, bounds, where = _strip_layout(
         seg, order, skey, span, uu, active, W, length - 1, h
     )
     col0 = np.rint(centre).astype(np.int64) - half
     strip = _gather_strips(img, bg, rows, col0, 2 * half + 1)
-    # the dots: the opening along the stripe (a vertical line where it leans less than 1 /
-    # (length - 1), else the digital line along its slope) in image coordinates, the dot
-    # mask on it, widened by 1 px
+    # the dots: the opening along the segment's line (its curve) in image coordinates, the
+    # dot mask on it, widened by 1 px
     tau = 3.0 * (noise_from_difference(img) if noise is None else noise)
     r_open = length // 2
-    opened = _line_extreme(strip, col0, bounds, slope, r_open, False)
-    opened = _line_extreme(opened, col0, bounds, slope, r_open, True)
+    opened = _line_extreme(strip, col0, bounds, centre, r_open, False)
+    opened = _line_extreme(opened, col0, bounds, centre, r_open, True)
     mask = np.empty(strip.shape, np.uint8)
     _above_opening(strip, opened, np.float32(_DOT_OPENING_FRACTION), np.float32(tau), mask)
     mask = _dilate_mask(mask, col0, bounds)
-    slit = _refill_strips(strip, opened, mask, slope, col0, bounds, 2 * length)
+    slit = _refill_strips(strip, opened, mask, centre, col0, bounds, 2 * length)
     # the active points in the order of their strips' rows (sorted by segment and row)
     m, row_ok = _steger_kernel(slit, col0, where, uu, order[active[order]], ss, max_shift_px, w)
     delta, ok, delta2, gain, bend = _fit_kernel(seg, key, order, skey, inner, m, uu, row_ok, R, deg)
@@ -383,7 +385,7 @@ def _check_options(
 # one (N, D) array. The background is a whole-image pass (the row median and OpenCV's box
 # mean); the strips are gathered from the image less it (:func:`_gather_strips`), opened along
 # the segment's line in image coordinates (:func:`_line_extreme`), their dots masked
-# (:func:`_dilate_mask`) and refilled along its slope (:func:`_refill_strips`) in compiled
+# (:func:`_dilate_mask`) and refilled along that line (:func:`_refill_strips`) in compiled
 # loops ahead of Steger's derivatives (:func:`_steger_kernel`), which read the strips.
 
 
@@ -430,14 +432,12 @@ def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
     The centre line in each row is a least-squares parabola in v through the segment's points
     (the given ``u``) in rows v - W .. v + W, the window cut at the segment's ends (the end
     row's parabola beyond them), read at v (:func:`_centre_parabola`: the line through fewer
-    than three points, the row before's through fewer than two); its slope is the parabola's
-    there.
+    than three points, the row before's through fewer than two).
 
     Returns
     -------
     rows : (N,) int64, the image row of each stacked row
     centre : (N,) float64, px, the centre line's column in it
-    slope : (N,) float64, px per row, its slope du/dv there
     bounds : (S + 1,) int64, strip s holds stacked rows bounds[s] .. bounds[s + 1] - 1
     where : (K,) int64, the stacked row of each active point (-1 for the others)
     """
@@ -466,7 +466,6 @@ def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
         j = e + 1
     rows = np.empty(n_rows, np.int64)
     centre = np.empty(n_rows)
-    slope = np.empty(n_rows)
     bounds = np.empty(n_strips + 1, np.int64)
     where = np.full(K, -1, np.int64)
     at = 0
@@ -516,14 +515,13 @@ def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
             d = min(max(row, 0), h - 1) - t  # the row read, from the parabola's
             rows[at] = t + d
             centre[at] = y0 + c[0] + (c[1] + c[2] * d) * d
-            slope[at] = c[1] + 2.0 * c[2] * d
             at += 1
         for q in range(qa, qb + 1):
             i = order[q]
             if active[i]:
                 where[i] = bounds[g] + (skey[q] - base) - top
     bounds[n_strips] = at
-    return rows, centre, slope, bounds, where
+    return rows, centre, bounds, where
 
 
 @njit(cache=True)
@@ -546,24 +544,27 @@ def _gather_strips(img, bg, rows, col0, width):
 
 
 @njit(cache=True, inline="always")
-def _line_offset(s, j):
-    """The column offset of row offset ``j`` on the digital line of slope ``s`` (px per row):
-    s j rounded half away from zero (a line symmetric about its centre)."""
-    x = s * j
+def _line_offset(centre, t, j):
+    """The column offset of stacked row t + ``j`` from row ``t`` on the centre line ``centre``
+    (N,) px: its difference between the rows rounded half away from zero (the offset from t + j
+    back to t is its negative: the line through each pixel is the same curve moved sideways)."""
+    x = centre[t + j] - centre[t]
     return int(math.floor(x + 0.5)) if x >= 0 else -int(math.floor(0.5 - x))
 
 
 @njit(cache=True)
-def _line_extreme(src, col0, bounds, slope, r, take_max):
+def _line_extreme(src, col0, bounds, centre, r, take_max):
     """The min (or with ``take_max`` the max) of the strips ``src`` (N, D) over the digital
-    line of 2 ``r`` + 1 px through each pixel in image coordinates: for stacked row t, rows t
-    + j (j = -r .. r, within the strip; ``bounds`` (S + 1,) the strips' first rows) at image
-    column c + round(``slope[t]`` j) (:func:`_line_offset`; stacked row t holds image columns
-    ``col0[t]`` ..); samples beyond the strip are left out (N, D), dtype of ``src``. A
-    vertical line where the slope is below 1 / (2 ``r``); the line is symmetric, so the
-    dilation by it is the max over the same line. For each j, the rows whose sample lies the
-    same number of columns over run as one loop over their pixels (most often none over: the
-    strip's first column steps once in many rows)."""
+    curve of 2 ``r`` + 1 rows through each pixel in image coordinates that follows the centre
+    line ``centre`` (N,) px: for stacked row t, rows t + j (j = -r .. r, within the strip;
+    ``bounds`` (S + 1,) the strips' first rows) at image column c + round(``centre[t + j]`` -
+    ``centre[t]``) (:func:`_line_offset`; stacked row t holds image columns ``col0[t]`` ..);
+    samples beyond the strip are left out (N, D), dtype of ``src``. A straight centre line
+    gives the digital line along its slope, a constant one the vertical line; the curve
+    through a pixel passes through the pixels whose curves pass through it, so the dilation by
+    it is the max over the same curve. For each j, the rows whose sample lies the same number
+    of columns over run as one loop over their pixels (most often none over: the strip's first
+    column follows the centre line)."""
     width = src.shape[1]
     out = src.copy()
     a = out.ravel()  # row t, column k at t D + k
@@ -576,9 +577,9 @@ def _line_extreme(src, col0, bounds, slope, r, take_max):
             t = max(t0, t0 - j)  # the rows t whose row t + j lies in the strip
             end = min(t1, t1 - j)
             while t < end:
-                d = col0[t] + _line_offset(slope[t], j) - col0[t + j]  # column k: k + d in t + j
+                d = col0[t] + _line_offset(centre, t, j) - col0[t + j]  # column k: k + d in t + j
                 e = t + 1
-                while e < end and col0[e] + _line_offset(slope[e], j) - col0[e + j] == d:
+                while e < end and col0[e] + _line_offset(centre, e, j) - col0[e + j] == d:
                     e += 1
                 # rows t .. e - 1: columns lo .. hi - 1 (all of them where d is 0)
                 lo = max(0, -d)
@@ -602,7 +603,8 @@ def _line_extreme(src, col0, bounds, slope, r, take_max):
 def _dilate_mask(mask, col0, bounds):
     """The dot mask ``mask`` (N, D) uint8 of the strips dilated by 3 x 3 px in image
     coordinates (as :func:`~multislit.stripes.separation.dot_mask` widens it): along the
-    rows, then over the stacked rows above and below (:func:`_line_extreme`)."""
+    rows, then over the stacked rows above and below (:func:`_line_extreme` with a constant
+    centre line: the pixels straight above and below in the image)."""
     n, width = mask.shape
     wide = mask.copy()
     a = mask.ravel()  # row t, column k at t D + k: one loop over all rows, then their ends
@@ -631,15 +633,17 @@ def _strip_sample(strip, t, x):
 
 
 @njit(cache=True)
-def _refill_strips(strip, opened, mask, slope, col0, bounds, lim):
+def _refill_strips(strip, opened, mask, centre, col0, bounds, lim):
     """The strips' dot pixels refilled, (N, D) float32, as :func:`fill_dots` refills along
-    the stripe's slope. ``strip`` (N, D): the strips as :func:`_gather_strips` makes them,
-    stacked row t holding image columns ``col0[t]`` ..; ``opened`` and ``mask`` (N, D) their
-    opening and dot mask (non-zero on dot pixels). In each column of a strip, a run of dot
-    pixels in stacked rows start .. stop - 1 is interpolated linearly between the rows start
-    - 1 and stop, each read along the slope ``slope`` (N,) px per row at the run's middle (by
-    linear interpolation in ``strip``), and kept below the pixel's own value; a run longer
-    than ``lim`` or reaching the strip's first or last row takes the opening."""
+    the stripe's slope, here along the centre line ``centre`` (N,) px, its curve included.
+    ``strip`` (N, D): the strips as :func:`_gather_strips` makes them, stacked row t holding
+    image columns ``col0[t]`` ..; ``opened`` and ``mask`` (N, D) their opening and dot mask
+    (non-zero on dot pixels). In each column of a strip, a run of dot pixels in stacked rows
+    start .. stop - 1 is interpolated linearly between the rows start - 1 and stop, pixel q
+    reading them where the centre line puts it, at its image column plus ``centre`` there
+    less ``centre[q]`` (by linear interpolation in ``strip``), and kept below the pixel's own
+    value; a run longer than ``lim`` or reaching the strip's first or last row takes the
+    opening."""
     out = strip.copy()
     width = strip.shape[1]
     for g in range(bounds.size - 1):
@@ -660,12 +664,11 @@ def _refill_strips(strip, opened, mask, slope, col0, bounds, lim):
                         out[q, k] = opened[q, k]
                     continue
                 a = start - 1
-                s = slope[start + n // 2]
                 step = 1.0 / float(np.float32(n + 1))
                 for q in range(start, stop):
-                    c = col0[q] + k  # the pixel's image column
-                    above = _strip_sample(strip, a, c - s * (q - a) - col0[a])
-                    below = _strip_sample(strip, stop, c + s * (stop - q) - col0[stop])
+                    c = col0[q] + k - centre[q]  # the pixel's image column off the line
+                    above = _strip_sample(strip, a, c + centre[a] - col0[a])
+                    below = _strip_sample(strip, stop, c + centre[stop] - col0[stop])
                     val = float(above) + float(np.float32(below - above)) * ((q - a) * step)
                     out[q, k] = np.float32(min(val, float(strip[q, k])))
     return out
