@@ -125,11 +125,14 @@ def refine_centres(
        strip's opening along the segment's line by 3 noise sigmas and 5 % (widened by 1 px),
        and each run of them in a column is interpolated along the line from the pixels above
        and below it, as :func:`fill_dots` does along the stripe's slope. The opening's line
-       (``length`` rows, :func:`opening_length` of the dot size) and the refill's reads follow
-       the segment's line itself, its curve included: on a curved stripe (the arcs on a
-       sphere) a straight line along the slope leaves the stripe towards the outside of the
-       curve at its ends, the opening then lies below the stripe's outer flank, which is taken
-       for dots and refilled lower, and the centre moves to the inside of the curve.
+       (``length`` rows, :func:`opening_length` of the dot size) follows the segment's line
+       itself, and the refill reads along the parabola of each run's middle row, its bend less
+       the bend that the given centres' noise puts in it (:func:`_shrink_bend`): on a curved
+       stripe (the arcs on a sphere near its outline) a straight line along the slope leaves
+       the stripe towards the outside of the curve at its ends, the opening then lies below
+       the stripe's outer flank, which is taken for dots and refilled lower, and the centre
+       moves to the inside of the curve; on a straight one, following the noise's bend would
+       read beside the stripe.
     2. Along the stripe: a polynomial in v fitted by least squares to the Steger centres of
        the *same segment* in rows v - R .. v + R (R = ``half_rows``), evaluated at v. The
        window is symmetric about v, shrunk near the segment's ends, and never takes rows of
@@ -230,7 +233,7 @@ def refine_centres(
     # segment; beyond its ends as far as the opening reaches
     half = rad + 3
     W = _BEND_WINDOWS * R
-    rows, centre, bounds, where = _strip_layout(
+    rows, centre, slope, bend, bounds, where = _strip_layout(
         seg, order, skey, span, uu, active, W, length - 1, h
     )
     col0 = np.rint(centre).astype(np.int64) - half
@@ -244,7 +247,9 @@ def refine_centres(
     mask = np.empty(strip.shape, np.uint8)
     _above_opening(strip, opened, np.float32(_DOT_OPENING_FRACTION), np.float32(tau), mask)
     mask = _dilate_mask(mask, col0, bounds)
-    slit = _refill_strips(strip, opened, mask, centre, col0, bounds, 2 * length)
+    # the refill along each run's parabola, its bend less the given centres' noise in it
+    bend = _shrink_bend(bend, bounds, length - 1, W)
+    slit = _refill_strips(strip, opened, mask, slope, bend, col0, bounds, 2 * length)
     # the active points in the order of their strips' rows (sorted by segment and row)
     m, row_ok = _steger_kernel(slit, col0, where, uu, order[active[order]], ss, max_shift_px, w)
     delta, ok, delta2, gain, bend = _fit_kernel(seg, key, order, skey, inner, m, uu, row_ok, R, deg)
@@ -290,6 +295,34 @@ def _pick_curved(
     a, b = order[pair], order[j[pair]]
     s2 = np.median((d[a] - d[b]) ** 2 / (gain[a] + gain[b])) / _CHI2_MEDIAN
     return _curved_kernel(order, sk, base, delta2, d, gain, s2, _CHI2_CURVED, R)
+
+
+def _shrink_bend(bend: F64, bounds: NDArray[np.int64], pad: int, W: int) -> F64:
+    """The centre line's bend (N,) px/row^2 (:func:`_strip_layout`) less its noise: the given
+    centres' errors (correlated along the stripe) bend the parabola through them, by s ~ 2e-4
+    px/row^2 at 25 slits (u'' ~ 4e-4), as much as a straight stripe's lens-distortion bow; the
+    refill that followed that noise would read beside the stripe. s^2 is measured as in
+    :func:`_pick_curved`: from pairs of stacked rows 2 ``W`` + 1 apart inside one strip's
+    segment rows (``bounds`` (S + 1,), ``pad`` rows beyond each end), whose windows are
+    disjoint and whose difference of bend has variance 2 s^2 where the stripe's own bend
+    changes little between them: median((b_a - b_b)^2) / (2 median(chi2_1)). Each bend b is
+    shrunk to b max(0, 1 - s^2 / b^2) (the positive-part James-Stein estimate: nought where
+    it is within its noise, the bend of a sphere's arc near its outline, ~0.01 px/row^2, kept
+    to a few per cent). With fewer than 50 pairs, nought everywhere (the slope's line)."""
+    lag = 2 * W + 1
+    n = bend.size
+    if n <= lag:
+        return np.zeros_like(bend)
+    strip_of = np.repeat(np.arange(bounds.size - 1), np.diff(bounds))
+    t = np.arange(n - lag)
+    g = strip_of[t]
+    pair = (g == strip_of[t + lag]) & (t - bounds[g] >= pad) & (bounds[g + 1] - 1 - pad >= t + lag)
+    if pair.sum() < _CURVED_MIN_PAIRS:
+        return np.zeros_like(bend)
+    d = bend[t[pair]] - bend[t[pair] + lag]
+    s2 = float(np.median(d * d)) / (2.0 * _CHI2_MEDIAN)
+    b2 = bend * bend
+    return np.where(b2 > s2, bend * (1.0 - s2 / np.maximum(b2, 1e-300)), 0.0)
 
 
 def _background(img: NDArray, sw: float, R: int) -> F32:
@@ -385,7 +418,7 @@ def _check_options(
 # one (N, D) array. The background is a whole-image pass (the row median and OpenCV's box
 # mean); the strips are gathered from the image less it (:func:`_gather_strips`), opened along
 # the segment's line in image coordinates (:func:`_line_extreme`), their dots masked
-# (:func:`_dilate_mask`) and refilled along that line (:func:`_refill_strips`) in compiled
+# (:func:`_dilate_mask`) and refilled along it (:func:`_refill_strips`) in compiled
 # loops ahead of Steger's derivatives (:func:`_steger_kernel`), which read the strips.
 
 
@@ -432,12 +465,16 @@ def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
     The centre line in each row is a least-squares parabola in v through the segment's points
     (the given ``u``) in rows v - W .. v + W, the window cut at the segment's ends (the end
     row's parabola beyond them), read at v (:func:`_centre_parabola`: the line through fewer
-    than three points, the row before's through fewer than two).
+    than three points, the row before's through fewer than two); its slope and half its
+    second derivative are the parabola's there.
 
     Returns
     -------
     rows : (N,) int64, the image row of each stacked row
     centre : (N,) float64, px, the centre line's column in it
+    slope : (N,) float64, px per row, its slope du/dv there
+    bend : (N,) float64, px per row^2, half its second derivative (the parabola's dv^2
+        coefficient)
     bounds : (S + 1,) int64, strip s holds stacked rows bounds[s] .. bounds[s + 1] - 1
     where : (K,) int64, the stacked row of each active point (-1 for the others)
     """
@@ -466,6 +503,8 @@ def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
         j = e + 1
     rows = np.empty(n_rows, np.int64)
     centre = np.empty(n_rows)
+    slope = np.empty(n_rows)
+    bend = np.empty(n_rows)
     bounds = np.empty(n_strips + 1, np.int64)
     where = np.full(K, -1, np.int64)
     at = 0
@@ -515,13 +554,15 @@ def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
             d = min(max(row, 0), h - 1) - t  # the row read, from the parabola's
             rows[at] = t + d
             centre[at] = y0 + c[0] + (c[1] + c[2] * d) * d
+            slope[at] = c[1] + 2.0 * c[2] * d
+            bend[at] = c[2]
             at += 1
         for q in range(qa, qb + 1):
             i = order[q]
             if active[i]:
                 where[i] = bounds[g] + (skey[q] - base) - top
     bounds[n_strips] = at
-    return rows, centre, bounds, where
+    return rows, centre, slope, bend, bounds, where
 
 
 @njit(cache=True)
@@ -633,17 +674,17 @@ def _strip_sample(strip, t, x):
 
 
 @njit(cache=True)
-def _refill_strips(strip, opened, mask, centre, col0, bounds, lim):
+def _refill_strips(strip, opened, mask, slope, bend, col0, bounds, lim):
     """The strips' dot pixels refilled, (N, D) float32, as :func:`fill_dots` refills along
-    the stripe's slope, here along the centre line ``centre`` (N,) px, its curve included.
-    ``strip`` (N, D): the strips as :func:`_gather_strips` makes them, stacked row t holding
-    image columns ``col0[t]`` ..; ``opened`` and ``mask`` (N, D) their opening and dot mask
-    (non-zero on dot pixels). In each column of a strip, a run of dot pixels in stacked rows
-    start .. stop - 1 is interpolated linearly between the rows start - 1 and stop, pixel q
-    reading them where the centre line puts it, at its image column plus ``centre`` there
-    less ``centre[q]`` (by linear interpolation in ``strip``), and kept below the pixel's own
-    value; a run longer than ``lim`` or reaching the strip's first or last row takes the
-    opening."""
+    the stripe's slope, here along a parabola. ``strip`` (N, D): the strips as
+    :func:`_gather_strips` makes them, stacked row t holding image columns ``col0[t]`` ..;
+    ``opened`` and ``mask`` (N, D) their opening and dot mask (non-zero on dot pixels). In
+    each column of a strip, a run of dot pixels in stacked rows start .. stop - 1 is
+    interpolated linearly between the rows start - 1 and stop, read along the parabola of the
+    run's middle row m, f(x) = s (x - m) + b (x - m)^2 (``slope`` s px per row and ``bend`` b
+    px per row^2 (N,) at m): pixel q at image column c reads row x at c + f(x) - f(q) (by
+    linear interpolation in ``strip``); the value is kept below the pixel's own. A run longer
+    than ``lim`` or reaching the strip's first or last row takes the opening."""
     out = strip.copy()
     width = strip.shape[1]
     for g in range(bounds.size - 1):
@@ -664,11 +705,17 @@ def _refill_strips(strip, opened, mask, centre, col0, bounds, lim):
                         out[q, k] = opened[q, k]
                     continue
                 a = start - 1
+                mid = start + n // 2
+                s = slope[mid]
+                b = bend[mid]
+                fa = s * (a - mid) + b * (a - mid) * (a - mid)
+                fb = s * (stop - mid) + b * (stop - mid) * (stop - mid)
                 step = 1.0 / float(np.float32(n + 1))
                 for q in range(start, stop):
-                    c = col0[q] + k - centre[q]  # the pixel's image column off the line
-                    above = _strip_sample(strip, a, c + centre[a] - col0[a])
-                    below = _strip_sample(strip, stop, c + centre[stop] - col0[stop])
+                    # the pixel's image column less the parabola at its row
+                    c = col0[q] + k - (s * (q - mid) + b * (q - mid) * (q - mid))
+                    above = _strip_sample(strip, a, c + fa - col0[a])
+                    below = _strip_sample(strip, stop, c + fb - col0[stop])
                     val = float(above) + float(np.float32(below - above)) * ((q - a) * step)
                     out[q, k] = np.float32(min(val, float(strip[q, k])))
     return out
