@@ -95,7 +95,8 @@ def frame(img, ref, cal, rig, template: bool = True) -> tuple[list[float], int]:
     t1 = time.perf_counter()
     ident = identify(img, ref, rig, extraction=ex, match_dots=False)
     t2 = time.perf_counter()
-    u, _ = refine_centres(img, ident.u, ident.v, ident.segment, ex.stripe_width_px, ex.dot_size_px)
+    sw, ds = ex.stripe_width_px, ex.dot_size_px
+    u, _ = refine_centres(img, ident.u, ident.v, ident.segment, sw, ds, noise_sigma=ex.noise_sigma)
     t3 = time.perf_counter()
     ok = ident.identified & ~faded_ends(ident)
     planes = cal.slit_planes.planes

@@ -462,6 +462,9 @@ def test_refine_centres_bad_input():
         refine_centres(img, u, v, seg, 3.0, degree=3)
     with pytest.raises(MultislitError, match="half_rows"):
         refine_centres(img, u, v, seg, 3.0, half_rows=-2)
+    for bad in (-1.0, 0.0, np.nan, "abc", [1.0]):
+        with pytest.raises(MultislitError, match="noise_sigma must be a positive number"):
+            refine_centres(img, u, v, seg, 3.0, noise_sigma=bad)
     e = np.empty(0)
     out, ok = refine_centres(img, e, e, np.empty(0, np.int64), 3.0)
     assert out.shape == ok.shape == (0,)

@@ -551,7 +551,13 @@ def _scan(
         # their first centre: the refinement fits along the rows
         seg = np.where(ex.by_column, -1, ident.segment)
         u, refined = refine_centres(
-            image, ident.u, ident.v, seg, ex.stripe_width_px, ex.dot_size_px
+            image,
+            ident.u,
+            ident.v,
+            seg,
+            ex.stripe_width_px,
+            ex.dot_size_px,
+            noise_sigma=ex.noise_sigma,
         )
     faded = m & faded_ends(ident, 0.0 if for_holes else _FADED_SHARE)
     m &= ~faded

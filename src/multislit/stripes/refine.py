@@ -12,16 +12,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from multislit.stripes.openings import stripe_opening
 from multislit.stripes.separation import (
-    dot_mask,
+    _DOT_OPENING_FRACTION,
+    _above_opening,
     fill_dots,
     noise_from_difference,
     row_median_background,
 )
 from multislit.stripes.sizes import FWHM_PER_SIGMA, median_stride, opening_length
 from multislit.stripes.slope import (
-    LEAN_DECIMATION,
-    _sobel_row,
-    reflect101,
     slope_sigma,
     stripe_slope,
 )
@@ -53,14 +51,16 @@ def refine_slit_image(
     bg_rows: int,
     bg_cols: int,
 ) -> F32:
-    """Slit image for :func:`refine_centres`: the extraction's, on a smoothed background.
+    """The whole image on the background of :func:`refine_centres`, its dots refilled.
 
     The row median background (:func:`row_median_background`) has pixel-to-pixel noise
     (neighbouring pixels' medians are taken over different samples) and follows the flanks
     of nearby stripes; a stripe's profile inherits both as a slope that moves its centre. Here
     it is averaged by a ``bg_cols`` x ``bg_rows`` box (along u and v), not clipped at 0, and
     the dots are found (the opening following leaning stripes) and refilled by interpolation
-    along the stripe as in the extraction.
+    along the stripe as in the extraction. :func:`refine_centres` makes its slit image only
+    on strips along the identified segments, each strip's opening and refill following the
+    segment's own line; this is the image-wide view of it.
 
     Parameters
     ----------
@@ -106,6 +106,7 @@ def refine_centres(
     max_shift_px: float = 1.0,
     steger_scale: float = REFINE_STEGER_SCALE,
     end_rows: int | None = None,
+    noise_sigma: float | None = None,
 ) -> tuple[F64, NDArray[np.bool_]]:
     """Re-centre identified stripe points for triangulation: less laser-speckle noise.
 
@@ -113,9 +114,25 @@ def refine_centres(
     For each point:
 
     1. Steger's centre in its row: the zero of the first derivative of the row profile
-       smoothed by a Gaussian of ``steger_scale`` stripe sigmas, by two Newton steps from the
-       given centre, on :func:`refine_slit_image` (the row median background averaged over
-       2 ``half_rows`` + 1 rows and 2 :func:`median_stride` + 1 columns, dots refilled).
+       smoothed by a Gaussian of ``steger_scale`` stripe sigmas, by one Newton step from the
+       given centre (clamped to 1 px; the profile is symmetric about its centre, so the
+       step's error is of third order in the given centre's), on the image less its row
+       median background averaged over 2 ``half_rows`` + 1 rows and 2 :func:`median_stride`
+       + 1 columns, its dots refilled. That
+       slit image is made only on a strip along each segment (the Steger window's reach and
+       3 px to spare either side of the segment's line, a least-squares parabola through its
+       points over 3 R rows either side of each row): the dots are the pixels above the
+       strip's opening along the segment's line by 3 noise sigmas and 5 % (widened by 1 px),
+       and each run of them in a column is interpolated along the line from the pixels above
+       and below it, as :func:`fill_dots` does along the stripe's slope. The opening's line
+       (``length`` rows, :func:`opening_length` of the dot size) follows the segment's line
+       itself, and the refill reads along the parabola of each run's middle row, its bend less
+       the bend that the given centres' noise puts in it (:func:`_shrink_bend`): on a curved
+       stripe (the arcs on a sphere near its outline) a straight line along the slope leaves
+       the stripe towards the outside of the curve at its ends, the opening then lies below
+       the stripe's outer flank, which is taken for dots and refilled lower, and the centre
+       moves to the inside of the curve; on a straight one, following the noise's bend would
+       read beside the stripe.
     2. Along the stripe: a polynomial in v fitted by least squares to the Steger centres of
        the *same segment* in rows v - R .. v + R (R = ``half_rows``), evaluated at v. The
        window is symmetric about v, shrunk near the segment's ends, and never takes rows of
@@ -172,6 +189,10 @@ def refine_centres(
     end_rows : rows at each segment end left out; default :func:`opening_length` of the dot
         size (7 px for 1.9 px dots). 0 refines more points, but a stripe that jumps at a
         segment's end then pulls the refined centres next to the jump
+    noise_sigma : the image's pixel noise sigma (intensity units) for the dot threshold, as
+        :func:`~multislit.stripes.separation.noise_from_difference` measures it: give the
+        extraction's (:attr:`SlitExtraction.noise_sigma`, the same measure of the same image)
+        not to measure it again; default measured here
 
     Returns
     -------
@@ -190,6 +211,7 @@ def refine_centres(
     sw, ds, R, deg, end = _check_options(
         stripe_width_px, dot_size_px, half_rows, degree, max_shift_px, steger_scale, end_rows
     )
+    noise = _check_noise(noise_sigma)
     K = uu.size
     out = uu.copy()
     if K == 0:
@@ -200,27 +222,37 @@ def refine_centres(
     r = rows.astype(np.intp)
     # > row range + the widest window: keys of two segments never meet
     span = h + 2 * max(1, _BEND_WINDOWS) * R + 2
-    key, order, pos, skey, inner = _segment_rows(seg, r, span, end)
+    key, order, skey, inner = _segment_rows(seg, r, span, end)
     # Steger's centres of the points that can take part in a fit (on a segment, not at its end),
-    # on the slit image of refine_slit_image, made only in their windows
-    length = opening_length(ds)
-    hp, put, pvt, g = _highpass_and_tensor(img, sw, R, length)
+    # on the slit image made only on strips along their segments
     active = (seg >= 0) & (inner >= 0)
-    tau = 3.0 * noise_from_difference(img)
     rad = math.ceil(3.0 * ss) + 1  # the Steger kernel's half width (px)
-    # the opening follows leaning stripes only in the cells the dot mask is read at
-    cells = _opening_cells(uu, r, active, rad, length, h, w)
-    opened = stripe_opening(hp, length, tau, cells=cells)
-    mask = dot_mask(hp, opened, tau)
-    # the slit image: the highpass with the dots refilled only where the points' windows read
-    # them; the slope's Gaussian only where those refills need it
-    slit = hp.copy()
-    hx, hy = np.empty((w, h), np.float32), np.empty((w, h), np.float32)
-    _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, uu, r, active, rad, length)
-    m, row_ok = _steger_kernel(slit, uu, r, active, ss, max_shift_px)
-    delta, ok, delta2, gain, bend = _fit_kernel(
-        seg, key, order, pos, skey, inner, m, uu, row_ok, R, deg
+    length = opening_length(ds)
+    bg = _background(img, sw, R)
+    # the strips: the Steger window's reach and 3 px to spare, along the centre line of each
+    # segment; beyond its ends as far as the opening reaches
+    half = rad + 3
+    W = _BEND_WINDOWS * R
+    rows, centre, slope, bend, bounds, where = _strip_layout(
+        seg, order, skey, span, uu, active, W, length - 1, h
     )
+    col0 = np.rint(centre).astype(np.int64) - half
+    strip = _gather_strips(img, bg, rows, col0, 2 * half + 1)
+    # the dots: the opening along the segment's line (its curve) in image coordinates, the
+    # dot mask on it, widened by 1 px
+    tau = 3.0 * (noise_from_difference(img) if noise is None else noise)
+    r_open = length // 2
+    opened = _line_extreme(strip, col0, bounds, centre, r_open, False)
+    opened = _line_extreme(opened, col0, bounds, centre, r_open, True)
+    mask = np.empty(strip.shape, np.uint8)
+    _above_opening(strip, opened, np.float32(_DOT_OPENING_FRACTION), np.float32(tau), mask)
+    mask = _dilate_mask(mask, col0, bounds)
+    # the refill along each run's parabola, its bend less the given centres' noise in it
+    bend = _shrink_bend(bend, bounds, length - 1, W)
+    slit = _refill_strips(strip, opened, mask, slope, bend, col0, bounds, 2 * length)
+    # the active points in the order of their strips' rows (sorted by segment and row)
+    m, row_ok = _steger_kernel(slit, col0, where, uu, order[active[order]], ss, max_shift_px, w)
+    delta, ok, delta2, gain, bend = _fit_kernel(seg, key, order, skey, inner, m, uu, row_ok, R, deg)
     if deg < 0:
         # the line less its bias on a curved stripe: the curvature from a parabola over
         # _BEND_WINDOWS times the rows, whose noise the wide window keeps far below the line's
@@ -265,64 +297,43 @@ def _pick_curved(
     return _curved_kernel(order, sk, base, delta2, d, gain, s2, _CHI2_CURVED, R)
 
 
-def _highpass_and_tensor(img: NDArray, sw: float, R: int, length: int) -> tuple[F32, F32, F32, F32]:
-    """The highpass of :func:`refine_slit_image` (image minus its row median background
-    averaged over 2 R + 1 rows and 2 :func:`median_stride` + 1 columns), (H, W) float32; the
-    structure tensor products gu^2 and gu gv of :func:`~multislit.stripes.slope.stripe_slope`
-    on it, transposed (W, H) float32; and the Gaussian (float32) that integrates them."""
+def _shrink_bend(bend: F64, bounds: NDArray[np.int64], pad: int, W: int) -> F64:
+    """The centre line's bend (N,) px/row^2 (:func:`_strip_layout`) less its noise: the given
+    centres' errors (correlated along the stripe) bend the parabola through them, by s ~ 2e-4
+    px/row^2 at 25 slits (u'' ~ 4e-4), as much as a straight stripe's lens-distortion bow; the
+    refill that followed that noise would read beside the stripe. s^2 is measured as in
+    :func:`_pick_curved`: from pairs of stacked rows 2 ``W`` + 1 apart inside one strip's
+    segment rows (``bounds`` (S + 1,), ``pad`` rows beyond each end), whose windows are
+    disjoint and whose difference of bend has variance 2 s^2 where the stripe's own bend
+    changes little between them: median((b_a - b_b)^2) / (2 median(chi2_1)). Each bend b is
+    shrunk to b max(0, 1 - s^2 / b^2) (the positive-part James-Stein estimate: nought where
+    it is within its noise, the bend of a sphere's arc near its outline, ~0.01 px/row^2, kept
+    to a few per cent). With fewer than 50 pairs, nought everywhere (the slope's line)."""
+    lag = 2 * W + 1
+    n = bend.size
+    if n <= lag:
+        return np.zeros_like(bend)
+    strip_of = np.repeat(np.arange(bounds.size - 1), np.diff(bounds))
+    t = np.arange(n - lag)
+    g = strip_of[t]
+    pair = (g == strip_of[t + lag]) & (t - bounds[g] >= pad) & (bounds[g + 1] - 1 - pad >= t + lag)
+    if pair.sum() < _CURVED_MIN_PAIRS:
+        return np.zeros_like(bend)
+    d = bend[t[pair]] - bend[t[pair] + lag]
+    s2 = float(np.median(d * d)) / (2.0 * _CHI2_MEDIAN)
+    b2 = bend * bend
+    return np.where(b2 > s2, bend * (1.0 - s2 / np.maximum(b2, 1e-300)), 0.0)
+
+
+def _background(img: NDArray, sw: float, R: int) -> F32:
+    """The background of :func:`refine_slit_image`, (H, W) float32: the row median background
+    of ``img`` averaged over 2 ``R`` + 1 rows and 2 :func:`median_stride` + 1 columns (``sw``
+    the stripe FWHM, px)."""
     stride = median_stride(sw)
     # the median of integer data is exact in its own type; the box mean as cv2.blur's
     bg = row_median_background(img, stride)
     ksize = (2 * stride + 1, 2 * R + 1)
-    hp = cv2.boxFilter(bg, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_REFLECT)
-    # the highpass in place of the background
-    if img.dtype != np.float32:
-        hp = cv2.subtract(img, hp, dst=hp, dtype=cv2.CV_32F)
-    else:
-        hp = np.subtract(img, hp, out=hp)
-    sig = slope_sigma(length)
-    taps = round(sig * 8 + 1) | 1  # cv2.GaussianBlur's kernel size for float data
-    g = cv2.getGaussianKernel(taps, sig, cv2.CV_32F).ravel()
-    # the products transposed (W, H): the slope's Gaussian runs along their rows
-    h, w = hp.shape
-    if h < 3 or w < 3:  # too small for the compiled pass's row views
-        hpt = cv2.transpose(hp)
-        gu = cv2.Sobel(hpt, cv2.CV_32F, 0, 1, ksize=3)
-        gv = cv2.Sobel(hpt, cv2.CV_32F, 1, 0, ksize=3)
-        pvt = cv2.multiply(gu, gv, dst=gv)
-        return hp, cv2.multiply(gu, gu, dst=gu), pvt, g
-    put = np.empty((w, h), np.float32)
-    pvt = np.empty((w, h), np.float32)
-    _tensor_products_t(hp, put, pvt)
-    return hp, put, pvt, g
-
-
-#: Rows of the highpass per block of :func:`_tensor_products_t` (16 float32: one cache line
-#: of each transposed row written at a time).
-_PRODUCT_ROWS = 16
-
-
-@njit(cache=True)
-def _tensor_products_t(hp, put, pvt):
-    """The structure tensor products gu^2 and gu gv of ``hp`` (H, W) float32, transposed:
-    ``put``, ``pvt`` (W, H) float32, from cv2.Sobel's 3x3 derivatives
-    (cv2.BORDER_REFLECT_101; H, W >= 3). The derivatives of a block of rows at a time, then
-    written column by column."""
-    h, w = hp.shape
-    nb = _PRODUCT_ROWS
-    gu = np.empty((nb, w), np.float32)
-    gv = np.empty((nb, w), np.float32)
-    for r0 in range(0, h, nb):
-        n = min(nb, h - r0)
-        for k in range(n):
-            _sobel_row(hp, r0 + k, gu[k], gv[k])
-        for c in range(w):
-            ou = put[c, r0 : r0 + n]
-            ov = pvt[c, r0 : r0 + n]
-            for k in range(n):
-                a = gu[k, c]
-                ou[k] = a * a
-                ov[k] = a * gv[k, c]
+    return cv2.boxFilter(bg, cv2.CV_32F, ksize, normalize=True, borderType=cv2.BORDER_REFLECT)
 
 
 def _check_points(
@@ -352,6 +363,21 @@ def _check_points(
             f"and v in [{vv.min():g}, {vv.max():g}]"
         )
     return uu, seg, rows
+
+
+def _check_noise(noise_sigma: float | None) -> float | None:
+    """The ``noise_sigma`` of :func:`refine_centres` checked: None, or a positive float."""
+    if noise_sigma is None:
+        return None
+    try:
+        x = float(noise_sigma)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not (math.isfinite(x) and x > 0):
+        raise SlitExtractionError(
+            f"noise_sigma must be a positive number (intensity units), got {noise_sigma!r}"
+        )
+    return x
 
 
 def _check_options(
@@ -387,331 +413,312 @@ def _check_options(
 
 
 # --------------------------------------------------------------------------- compiled kernels
-# The refinement reads the slit image only in the points' Steger windows. The highpass, the
-# vertical opening and the stripes' lean are whole-image passes (OpenCV), the structure
-# tensor's products (transposed, :func:`_tensor_products_t`) and the dot mask whole-image
-# compiled passes; the opening along leaning stripes is made only in the cells
-# the dot mask is read at (:func:`_opening_cells`); the dot
-# refill (a run of dot pixels at a time, only in the rows the windows read) and the stripe
-# slope it needs (the tensor's Gaussian: its pass along u column by column, for the blocks of
-# rows around those runs; its pass along v at their middles) are made in compiled loops only
-# for the runs the windows can meet, ahead of Steger's derivatives, with the values of
-# :func:`refine_slit_image` there (to float32 rounding).
-
-#: Rows per block of the horizontal pass of the slope's Gaussian (made where needed).
-_SLOPE_BLOCK = 32
+# The refinement makes the slit image only along the identified stripes: on strips that follow
+# each segment's line (:func:`_strip_layout`), the Steger window's reach wide, stacked into
+# one (N, D) array. The background is a whole-image pass (the row median and OpenCV's box
+# mean); the strips are gathered from the image less it (:func:`_gather_strips`), opened along
+# the segment's line in image coordinates (:func:`_line_extreme`), their dots masked
+# (:func:`_dilate_mask`) and refilled along it (:func:`_refill_strips`) in compiled
+# loops ahead of Steger's derivatives (:func:`_steger_kernel`), which read the strips.
 
 
 @njit(cache=True)
-def _slope_rows(put, pvt, g, hx, hy, c, q0, q1):
-    """The Gaussian ``g``'s pass along u (cv2.BORDER_REFLECT_101) of the structure tensor
-    products ``put``, ``pvt`` (W, H) in rows ``q0`` .. ``q1`` - 1 of column ``c``, to ``hx``,
-    ``hy`` (W, H): each sum float32, in order of the taps."""
-    w = put.shape[0]
-    nt = g.size
-    rk = nt // 2
-    # 1-D views: the inner loops vectorise (the longer the rows, the faster per row); four
-    # taps per pass over the sums, added one after the other (the same order as one by one)
-    sx = hx[c, q0:q1]
-    sy = hy[c, q0:q1]
-    sx[:] = 0.0
-    sy[:] = 0.0
+def _centre_parabola(s0, s1, s2, s3, s4, t0, t1, t2, xi, c):
+    """The least-squares parabola y = c0 + c1 d + c2 d^2 (d = x - ``xi``) through points
+    whose sums of x^k are ``s0`` .. ``s4`` (int) and of y x^k ``t0`` .. ``t2``, into ``c`` (3,);
+    the line (c2 = 0) through fewer than three points or where the parabola's normal
+    equations are singular; ``c`` left as it is (the row before's) through fewer than two."""
+    # the moments about xi (exact integers), and the right-hand sides
+    m1 = s1 - xi * s0
+    m2 = s2 - 2 * xi * s1 + xi * xi * s0
+    m3 = s3 - 3 * xi * s2 + 3 * xi * xi * s1 - xi * xi * xi * s0
+    m4 = s4 - 4 * xi * s3 + 6 * xi * xi * s2 - 4 * xi * xi * xi * s1 + xi * xi * xi * xi * s0
+    f = float(xi)
+    r0 = t0
+    r1 = t1 - f * t0
+    r2 = t2 - 2.0 * f * t1 + f * f * t0
+    n, a1, a2, a3, a4 = float(s0), float(m1), float(m2), float(m3), float(m4)
+    if s0 >= 3:
+        c0 = a2 * a4 - a3 * a3
+        c1 = a2 * a3 - a1 * a4
+        c2 = a1 * a3 - a2 * a2
+        det3 = n * c0 + a1 * c1 + a2 * c2
+        if abs(det3) > 1e-9 * n**3:
+            c[0] = (c0 * r0 + c1 * r1 + c2 * r2) / det3
+            c[1] = (c1 * r0 + (n * a4 - a2 * a2) * r1 + (a1 * a2 - n * a3) * r2) / det3
+            c[2] = (c2 * r0 + (a1 * a2 - n * a3) * r1 + (n * a2 - a1 * a1) * r2) / det3
+            return
+    det = n * a2 - a1 * a1
+    if s0 >= 2 and det > 1e-9 * n * n:
+        c[1] = (n * r1 - a1 * r0) / det
+        c[0] = (r0 - c[1] * a1) / n
+        c[2] = 0.0
+
+
+@njit(cache=True)
+def _strip_layout(seg, order, skey, span, u, active, W, pad, h):
+    """The strips of :func:`refine_centres`: one per segment that holds an ``active`` point,
+    over its rows from first to last and ``pad`` rows beyond each end (the rows beyond the
+    image's ``h`` rows repeat its first or last), stacked. ``seg``, ``u``, ``active`` (K,) the points; ``order`` and ``skey``
+    (K,) their sorted order and keys (segment * ``span`` + row, :func:`_segment_rows`).
+
+    The centre line in each row is a least-squares parabola in v through the segment's points
+    (the given ``u``) in rows v - W .. v + W, the window cut at the segment's ends (the end
+    row's parabola beyond them), read at v (:func:`_centre_parabola`: the line through fewer
+    than three points, the row before's through fewer than two); its slope and half its
+    second derivative are the parabola's there.
+
+    Returns
+    -------
+    rows : (N,) int64, the image row of each stacked row
+    centre : (N,) float64, px, the centre line's column in it
+    slope : (N,) float64, px per row, its slope du/dv there
+    bend : (N,) float64, px per row^2, half its second derivative (the parabola's dv^2
+        coefficient)
+    bounds : (S + 1,) int64, strip s holds stacked rows bounds[s] .. bounds[s + 1] - 1
+    where : (K,) int64, the stacked row of each active point (-1 for the others)
+    """
+    K = seg.size
+    # the segments with an active point: their runs of sorted positions
+    n_strips = 0
+    n_rows = 0
     j = 0
-    while j + 4 <= nt:
-        c0 = reflect101(c + j - rk, w)
-        c1 = reflect101(c + j + 1 - rk, w)
-        c2 = reflect101(c + j + 2 - rk, w)
-        c3 = reflect101(c + j + 3 - rk, w)
-        g0, g1, g2, g3 = g[j], g[j + 1], g[j + 2], g[j + 3]
-        p0, p1, p2, p3 = put[c0, q0:q1], put[c1, q0:q1], put[c2, q0:q1], put[c3, q0:q1]
-        for q in range(sx.size):
-            sx[q] = (((sx[q] + g0 * p0[q]) + g1 * p1[q]) + g2 * p2[q]) + g3 * p3[q]
-        p0, p1, p2, p3 = pvt[c0, q0:q1], pvt[c1, q0:q1], pvt[c2, q0:q1], pvt[c3, q0:q1]
-        for q in range(sy.size):
-            sy[q] = (((sy[q] + g0 * p0[q]) + g1 * p1[q]) + g2 * p2[q]) + g3 * p3[q]
-        j += 4
-    for jj in range(j, nt):
-        cc = reflect101(c + jj - rk, w)
-        gj = g[jj]
-        px = put[cc, q0:q1]
-        py = pvt[cc, q0:q1]
-        for q in range(sx.size):
-            sx[q] += gj * px[q]
-            sy[q] += gj * py[q]
-
-
-@njit(cache=True, inline="always")
-def _slope_value(juu, juv):
-    """The stripe slope du/dv from the integrated tensor products J_uu, J_uv (float32),
-    clipped to +-1, float32 (as :func:`~multislit.stripes.slope.stripe_slope`)."""
-    s = np.float32(-juv / max(juu, np.float32(1e-6)))
-    return min(max(s, np.float32(-1.0)), np.float32(1.0))
+    first = np.empty(K + 1, np.int64)
+    last = np.empty(K + 1, np.int64)
+    while j < K:
+        e = j
+        while e + 1 < K and seg[order[e + 1]] == seg[order[j]]:
+            e += 1
+        keep = False
+        if seg[order[j]] >= 0:
+            for q in range(j, e + 1):
+                keep = keep or active[order[q]]
+        if keep:
+            first[n_strips] = j
+            last[n_strips] = e
+            n_strips += 1
+            r0 = skey[j] - seg[order[j]] * span
+            r1 = skey[e] - seg[order[j]] * span
+            n_rows += r1 - r0 + 1 + 2 * pad
+        j = e + 1
+    rows = np.empty(n_rows, np.int64)
+    centre = np.empty(n_rows)
+    slope = np.empty(n_rows)
+    bend = np.empty(n_rows)
+    bounds = np.empty(n_strips + 1, np.int64)
+    where = np.full(K, -1, np.int64)
+    at = 0
+    for g in range(n_strips):
+        qa, qb = first[g], last[g]
+        base = seg[order[qa]] * span
+        r0 = skey[qa] - base
+        r1 = skey[qb] - base
+        y0 = u[order[qa]]
+        bounds[g] = at
+        lo = qa  # the window's points: sorted positions lo .. hi - 1
+        hi = qa
+        # sums over them of x^k (k = 0 .. 4; integers, exact) and y x^k (k = 0 .. 2), x the
+        # row from r0, y the centre from y0
+        s0 = s1 = s2 = s3 = s4 = 0
+        t0 = t1 = t2 = 0.0
+        c = np.zeros(3)  # the parabola about row t: value, slope, half the second derivative
+        top = r0 - pad
+        for row in range(top, r1 + pad + 1):
+            t = min(max(row, r0), r1)  # beyond the ends: the end row's parabola
+            if row == t or row == top:
+                while hi <= qb and skey[hi] - base <= t + W:
+                    x = skey[hi] - base - r0
+                    y = u[order[hi]] - y0
+                    s0 += 1
+                    s1 += x
+                    s2 += x * x
+                    s3 += x * x * x
+                    s4 += x * x * x * x
+                    t0 += y
+                    t1 += x * y
+                    t2 += x * x * y
+                    hi += 1
+                while lo < hi and skey[lo] - base < t - W:
+                    x = skey[lo] - base - r0
+                    y = u[order[lo]] - y0
+                    s0 -= 1
+                    s1 -= x
+                    s2 -= x * x
+                    s3 -= x * x * x
+                    s4 -= x * x * x * x
+                    t0 -= y
+                    t1 -= x * y
+                    t2 -= x * x * y
+                    lo += 1
+                _centre_parabola(s0, s1, s2, s3, s4, t0, t1, t2, t - r0, c)
+            d = min(max(row, 0), h - 1) - t  # the row read, from the parabola's
+            rows[at] = t + d
+            centre[at] = y0 + c[0] + (c[1] + c[2] * d) * d
+            slope[at] = c[1] + 2.0 * c[2] * d
+            bend[at] = c[2]
+            at += 1
+        for q in range(qa, qb + 1):
+            i = order[q]
+            if active[i]:
+                where[i] = bounds[g] + (skey[q] - base) - top
+    bounds[n_strips] = at
+    return rows, centre, slope, bend, bounds, where
 
 
 @njit(cache=True)
-def _run_slopes(hx, hy, g, cols, mids):
-    """:func:`~multislit.stripes.slope.stripe_slope` at rows ``mids`` of columns ``cols``
-    (n,): the Gaussian ``g``'s pass along v (cv2.BORDER_REFLECT_101) of the pass along u
-    ``hx``, ``hy`` (W, H), each sum float32 in order of rows; (n,) float32. Four sums at a time
-    away from the borders: independent sums interleaved, each in its own order."""
-    h = hx.shape[1]
-    nt = g.size
-    rk = nt // 2
-    n = cols.size
-    out = np.empty(n, np.float32)
-    inside = np.empty(n, np.intp)
-    n_in = 0
-    for j in range(n):
-        mid = mids[j]
-        c = cols[j]
-        if mid - rk >= 0 and mid + rk < h:
-            inside[n_in] = j
-            n_in += 1
-            continue
-        juu = np.float32(0.0)
-        juv = np.float32(0.0)
-        for i in range(-rk, rk + 1):
-            q = reflect101(mid + i, h)
-            juu += g[i + rk] * hx[c, q]
-            juv += g[i + rk] * hy[c, q]
-        out[j] = _slope_value(juu, juv)
-    t = 0
-    while t + 4 <= n_in:
-        j0, j1, j2, j3 = inside[t], inside[t + 1], inside[t + 2], inside[t + 3]
-        x0 = hx[cols[j0], mids[j0] - rk : mids[j0] + rk + 1]
-        x1 = hx[cols[j1], mids[j1] - rk : mids[j1] + rk + 1]
-        x2 = hx[cols[j2], mids[j2] - rk : mids[j2] + rk + 1]
-        x3 = hx[cols[j3], mids[j3] - rk : mids[j3] + rk + 1]
-        y0 = hy[cols[j0], mids[j0] - rk : mids[j0] + rk + 1]
-        y1 = hy[cols[j1], mids[j1] - rk : mids[j1] + rk + 1]
-        y2 = hy[cols[j2], mids[j2] - rk : mids[j2] + rk + 1]
-        y3 = hy[cols[j3], mids[j3] - rk : mids[j3] + rk + 1]
-        a0 = a1 = a2 = a3 = np.float32(0.0)
-        b0 = b1 = b2 = b3 = np.float32(0.0)
-        for i in range(nt):
-            gi = g[i]
-            a0 += gi * x0[i]
-            b0 += gi * y0[i]
-            a1 += gi * x1[i]
-            b1 += gi * y1[i]
-            a2 += gi * x2[i]
-            b2 += gi * y2[i]
-            a3 += gi * x3[i]
-            b3 += gi * y3[i]
-        out[j0] = _slope_value(a0, b0)
-        out[j1] = _slope_value(a1, b1)
-        out[j2] = _slope_value(a2, b2)
-        out[j3] = _slope_value(a3, b3)
-        t += 4
-    for tt in range(t, n_in):
-        j = inside[tt]
-        x = hx[cols[j], mids[j] - rk : mids[j] + rk + 1]
-        y = hy[cols[j], mids[j] - rk : mids[j] + rk + 1]
-        juu = np.float32(0.0)
-        juv = np.float32(0.0)
-        for i in range(nt):
-            juu += g[i] * x[i]
-            juv += g[i] * y[i]
-        out[j] = _slope_value(juu, juv)
+def _gather_strips(img, bg, rows, col0, width):
+    """(N, ``width``) float32, the strips: the highpass ``img`` - ``bg`` ((H, W), ``bg``
+    float32; float32 arithmetic) in row ``rows[t]``, columns ``col0[t]`` .. ``col0[t]`` +
+    ``width`` - 1 (clamped to the image), for each stacked row t."""
+    w = img.shape[1]
+    n = rows.size
+    out = np.empty((n, width), np.float32)
+    for t in range(n):
+        src = img[rows[t]]
+        back = bg[rows[t]]
+        dst = out[t]
+        c = col0[t]
+        for k in range(width):
+            cc = min(max(c + k, 0), w - 1)
+            dst[k] = np.float32(src[cc]) - back[cc]
     return out
 
 
 @njit(cache=True, inline="always")
-def _run_bounds(mask, r, c, lim):
-    """The run of dot pixels (``mask`` non-zero) through (r, c) in column c: rows start ..
-    stop - 1, followed at most ``lim`` + 1 rows from r up and from start down (a longer run
-    comes out longer than ``lim``)."""
-    h = mask.shape[0]
-    start = r
-    while start > 0 and r - start <= lim and mask[start - 1, c]:
-        start -= 1
-    stop = r + 1
-    while stop < h and stop - start <= lim and mask[stop, c]:
-        stop += 1
-    return start, stop
-
-
-@njit(cache=True, inline="always")
-def _row_sample(hp: F32, r: int, x: float) -> np.float32:
-    """``hp`` interpolated linearly along row ``r`` at column ``x`` (as :func:`fill_dots`)."""
-    w = hp.shape[1]
-    x = min(max(x, 0.0), w - 1.0)
-    u0 = min(int(math.floor(x)), w - 2) if w > 1 else 0
-    f = np.float32(x - u0)
-    a = hp[r, u0]
-    b = hp[r, min(u0 + 1, w - 1)]
-    return np.float32(a + np.float32(np.float32(b - a) * f))
-
-
-@njit(cache=True, inline="always")
-def _fill_run(hp, opened, slit, start, stop, c, lim, s, q0, q1):
-    """:func:`fill_dots` for the run of dot pixels in rows ``start`` .. ``stop`` - 1 of column
-    ``c`` (as :func:`_run_bounds` finds it), in its rows ``q0`` .. ``q1`` - 1: each pixel
-    interpolated along the local stripe slope ``s`` (float32, :func:`_run_slopes`) between
-    the clean pixels above and below the run, or the opening where the run is longer than
-    ``lim`` or touches the image border; written to ``slit``."""
-    h = hp.shape[0]
-    n = stop - start
-    if start == 0 or stop == h or n > lim:
-        for q in range(q0, q1):
-            slit[q, c] = opened[q, c]
-        return
-    for q in range(q0, q1):
-        t = q - start + 1
-        above = _row_sample(hp, start - 1, c - float(s) * t)
-        below = _row_sample(hp, stop, c + float(s) * (n + 1 - t))
-        frac = t / float(np.float32(n + 1))
-        val = float(above) + float(np.float32(below - above)) * frac
-        slit[q, c] = np.float32(min(val, float(hp[q, c])))
-
-
-def _opening_cells(
-    u: F64,
-    r: NDArray[np.intp],
-    active: NDArray[np.bool_],
-    rad: int,
-    length: int,
-    h: int,
-    w: int,
-) -> NDArray[np.bool_]:
-    """The cells of :func:`~multislit.stripes.slope.lean_map` ((``h`` // D, ``w`` // D), D x D
-    px, the last ones taking the image's remainder) that can hold a pixel whose opening :func:`_refill_dots`
-    reads through the dot mask, for the ``active`` points at columns ``u`` (K,) px, rows ``r``
-    (K,), in an ``h`` x ``w`` px image: the mask is read in columns floor(u) - 1 - ``rad`` ..
-    floor(u) + 1 + ``rad`` of the point's row and, along the dot runs there, up to 2
-    ``length`` + 1 rows above and 2 ``length`` below; the mask's dilation widens that by 1 px.
-    The cells of those columns in the point's row, widened along v by (2 ``length`` + 2) // D
-    + 1 cells, which covers those rows. (nr, nc) bool."""
-    f = LEAN_DECIMATION
-    seeds = _seed_cells(u, r, active, rad, w, max(h // f, 1), max(w // f, 1))
-    reach = (2 * length + 2) // f + 1
-    cells = cv2.dilate(seeds, np.ones((2 * reach + 1, 1), np.uint8))
-    return cells.view(np.bool_)
+def _line_offset(centre, t, j):
+    """The column offset of stacked row t + ``j`` from row ``t`` on the centre line ``centre``
+    (N,) px: its difference between the rows rounded half away from zero (the offset from t + j
+    back to t is its negative: the line through each pixel is the same curve moved sideways)."""
+    x = centre[t + j] - centre[t]
+    return int(math.floor(x + 0.5)) if x >= 0 else -int(math.floor(0.5 - x))
 
 
 @njit(cache=True)
-def _seed_cells(u, r, active, rad, w, nr, nc):
-    """(nr, nc) uint8, 1 on the cells of D x D px (:data:`LEAN_DECIMATION`, a compile-time
-    constant; the last ones taking the remainder) that hold columns floor(u) - 2 - ``rad`` ..
-    floor(u) + 2 + ``rad`` of an ``active`` point's row ``r``."""
-    f = LEAN_DECIMATION
-    cells = np.zeros((nr, nc), np.uint8)
-    for i in range(u.size):
-        if not active[i]:
-            continue
-        c0 = int(math.floor(min(max(u[i], 0.0), w - 1.0)))
-        q = min(r[i] // f, nr - 1)
-        for cc in range(max(c0 - 2 - rad, 0) // f, min(c0 + 2 + rad, w - 1) // f + 1):
-            cells[q, min(cc, nc - 1)] = 1
-    return cells
+def _line_extreme(src, col0, bounds, centre, r, take_max):
+    """The min (or with ``take_max`` the max) of the strips ``src`` (N, D) over the digital
+    curve of 2 ``r`` + 1 rows through each pixel in image coordinates that follows the centre
+    line ``centre`` (N,) px: for stacked row t, rows t + j (j = -r .. r, within the strip;
+    ``bounds`` (S + 1,) the strips' first rows) at image column c + round(``centre[t + j]`` -
+    ``centre[t]``) (:func:`_line_offset`; stacked row t holds image columns ``col0[t]`` ..);
+    samples beyond the strip are left out (N, D), dtype of ``src``. A straight centre line
+    gives the digital line along its slope, a constant one the vertical line; the curve
+    through a pixel passes through the pixels whose curves pass through it, so the dilation by
+    it is the max over the same curve. For each j, the rows whose sample lies the same number
+    of columns over run as one loop over their pixels (most often none over: the strip's first
+    column follows the centre line)."""
+    width = src.shape[1]
+    out = src.copy()
+    a = out.ravel()  # row t, column k at t D + k
+    b = src.ravel()
+    for g in range(bounds.size - 1):
+        t0, t1 = bounds[g], bounds[g + 1]
+        for j in range(-r, r + 1):
+            if j == 0:
+                continue
+            t = max(t0, t0 - j)  # the rows t whose row t + j lies in the strip
+            end = min(t1, t1 - j)
+            while t < end:
+                d = col0[t] + _line_offset(centre, t, j) - col0[t + j]  # column k: k + d in t + j
+                e = t + 1
+                while e < end and col0[e] + _line_offset(centre, e, j) - col0[e + j] == d:
+                    e += 1
+                # rows t .. e - 1: columns lo .. hi - 1 (all of them where d is 0)
+                lo = max(0, -d)
+                hi = min(width, width - d)
+                for q in range(t, e if d != 0 else t + 1):
+                    first = q * width + lo if d != 0 else t * width
+                    n = hi - lo if d != 0 else (e - t) * width
+                    x = a[first : first + n]  # 1-D views from 0: the loops vectorise
+                    y = b[first + j * width + d : first + j * width + d + n]
+                    if take_max:
+                        for k in range(n):
+                            x[k] = max(x[k], y[k])
+                    else:
+                        for k in range(n):
+                            x[k] = min(x[k], y[k])
+                t = e
+    return out
 
 
 @njit(cache=True)
-def _refill_dots(hp, mask, opened, put, pvt, g, hx, hy, slit, u, r, active, rad, length):
-    """The dot pixels (``mask`` non-zero) that :func:`_steger_kernel` can read refilled in
-    ``slit`` (H, W) float32: those of columns floor(u) - 1 - ``rad`` .. floor(u) + 1 + ``rad``
-    of the ``active`` points' rows (the Newton steps move by at most 1 px before the last
-    evaluation), each as :func:`fill_dots` refills its run of dot pixels in its column
-    (:func:`_fill_run`). ``put``, ``pvt`` (W, H) are the structure tensor products transposed
-    and ``g`` the slope's Gaussian (:func:`_highpass_and_tensor`); ``hx``, ``hy`` (W, H)
-    float32 work arrays for its pass along u. First the runs are found, in the points' order
-    (row by row), with the rows the windows read in each (a run longer than 2 ``length``, which
-    keeps the opening, is walked once and then followed row by row, not walked again from
-    each row); then the slope Gaussian's pass along
-    u is made, column by column in runs of blocks (:func:`_slope_rows` is fastest on long
-    runs), around the middle of each run to interpolate, and its pass along v at those middles
-    (:func:`_run_slopes`); then the runs are refilled in those rows."""
-    h, w = mask.shape
-    rk = g.size // 2
-    lim = 2 * length
-    nb = -(-h // _SLOPE_BLOCK)
-    need = np.zeros((w, nb), np.uint8)
-    # the last run found per column: rows start .. stop - 1, its index, the rows read in it
-    seen_start = np.full(w, -1)
-    seen_stop = np.full(w, -1)
-    seen_run = np.full(w, -1)
-    seen_lo = np.zeros(w, np.int64)
-    seen_hi = np.zeros(w, np.int64)
-    # (column, start, stop, first and last row read) of the runs found
-    runs = np.empty((2 * u.size + 64, 5), np.int32)
-    n_runs = 0
-    for i in range(u.size):
-        if not active[i]:
-            continue
-        ri = r[i]
-        c0 = int(math.floor(min(max(u[i], 0.0), w - 1.0)))
-        for cc in range(max(c0 - 1 - rad, 0), min(c0 + 1 + rad, w - 1) + 1):
-            if not mask[ri, cc]:
-                continue
-            start, stop = seen_start[cc], seen_stop[cc]
-            if start <= ri < stop or (stop - start > lim and start - 1 <= ri <= stop):
-                # in the column's last run; or next to it where that is longer than lim: the
-                # same run (a dot pixel next to its dot pixels), kept by the opening
-                seen_start[cc] = min(start, ri)
-                seen_stop[cc] = max(stop, ri + 1)
-                seen_lo[cc] = min(seen_lo[cc], ri)
-                seen_hi[cc] = max(seen_hi[cc], ri)
-                continue
-            if seen_run[cc] >= 0:  # the column's last run: the rows read in it
-                runs[seen_run[cc], 3] = seen_lo[cc]
-                runs[seen_run[cc], 4] = seen_hi[cc]
-            start, stop = _run_bounds(mask, ri, cc, lim)
-            seen_start[cc] = start
-            seen_stop[cc] = stop
-            seen_run[cc] = n_runs
-            seen_lo[cc] = ri
-            seen_hi[cc] = ri
-            if n_runs == runs.shape[0]:
-                more = np.empty((2 * n_runs, 5), np.int32)
-                more[:n_runs] = runs
-                runs = more
-            runs[n_runs, 0] = cc
-            runs[n_runs, 1] = start
-            runs[n_runs, 2] = stop
-            n_runs += 1
-            n = stop - start
-            if start == 0 or stop == h or n > lim:
-                continue
-            mid = start + n // 2
-            lo = max(mid - rk, 0)
-            hi = min(mid + rk, h - 1)  # reflected rows near the borders fall inside lo .. hi
-            for b in range(lo // _SLOPE_BLOCK, hi // _SLOPE_BLOCK + 1):
-                need[cc, b] = 1
-    for cc in range(w):
-        if seen_run[cc] >= 0:
-            runs[seen_run[cc], 3] = seen_lo[cc]
-            runs[seen_run[cc], 4] = seen_hi[cc]
-    # the slope Gaussian's pass along u where the runs to interpolate need it
-    for c in range(w):
-        b = 0
-        while b < nb:
-            if not need[c, b]:
-                b += 1
-                continue
-            e = b
-            while e < nb and need[c, e]:
-                e += 1
-            _slope_rows(put, pvt, g, hx, hy, c, b * _SLOPE_BLOCK, min(e * _SLOPE_BLOCK, h))
-            b = e
-    # its pass along v at their middles
-    cols = np.empty(n_runs, np.intp)
-    mids = np.empty(n_runs, np.intp)
-    which = np.empty(n_runs, np.intp)
-    n_in = 0
-    for k in range(n_runs):
-        start = runs[k, 1]
-        stop = runs[k, 2]
-        if start > 0 and stop < h and stop - start <= lim:
-            cols[n_in] = runs[k, 0]
-            mids[n_in] = start + (stop - start) // 2
-            which[n_in] = k
-            n_in += 1
-    slope = np.zeros(n_runs, np.float32)
-    slope[which[:n_in]] = _run_slopes(hx, hy, g, cols[:n_in], mids[:n_in])
-    # in the order found: row by row, as the memory lies
-    for k in range(n_runs):
-        c, start, stop, q0, q1 = runs[k, 0], runs[k, 1], runs[k, 2], runs[k, 3], runs[k, 4]
-        _fill_run(hp, opened, slit, start, stop, c, lim, slope[k], q0, q1 + 1)
+def _dilate_mask(mask, col0, bounds):
+    """The dot mask ``mask`` (N, D) uint8 of the strips dilated by 3 x 3 px in image
+    coordinates (as :func:`~multislit.stripes.separation.dot_mask` widens it): along the
+    rows, then over the stacked rows above and below (:func:`_line_extreme` with a constant
+    centre line: the pixels straight above and below in the image)."""
+    n, width = mask.shape
+    wide = mask.copy()
+    a = mask.ravel()  # row t, column k at t D + k: one loop over all rows, then their ends
+    b = wide.ravel()
+    lo, mid, hi = a[: a.size - 2], a[1 : a.size - 1], a[2:]
+    out = b[1 : b.size - 1]
+    for i in range(out.size):
+        out[i] = max(lo[i], max(mid[i], hi[i]))
+    for t in range(n):
+        m = mask[t]
+        wide[t, 0] = max(m[0], m[min(1, width - 1)])
+        wide[t, width - 1] = max(m[width - 1], m[max(width - 2, 0)])
+    return _line_extreme(wide, col0, bounds, np.zeros(n), 1, True)
+
+
+@njit(cache=True, inline="always")
+def _strip_sample(strip, t, x):
+    """The strips ``strip`` (N, D) interpolated linearly along stacked row ``t`` at column
+    ``x`` (clamped to 0 .. D - 1), float32 (as :func:`fill_dots` reads a row)."""
+    d = strip.shape[1]
+    x = min(max(x, 0.0), d - 1.0)
+    k = min(int(math.floor(x)), d - 2)
+    f = np.float32(x - k)
+    a = strip[t, k]
+    return np.float32(a + np.float32(np.float32(strip[t, k + 1] - a) * f))
+
+
+@njit(cache=True)
+def _refill_strips(strip, opened, mask, slope, bend, col0, bounds, lim):
+    """The strips' dot pixels refilled, (N, D) float32, as :func:`fill_dots` refills along
+    the stripe's slope, here along a parabola. ``strip`` (N, D): the strips as
+    :func:`_gather_strips` makes them, stacked row t holding image columns ``col0[t]`` ..;
+    ``opened`` and ``mask`` (N, D) their opening and dot mask (non-zero on dot pixels). In
+    each column of a strip, a run of dot pixels in stacked rows start .. stop - 1 is
+    interpolated linearly between the rows start - 1 and stop, read along the parabola of the
+    run's middle row m, f(x) = s (x - m) + b (x - m)^2 (``slope`` s px per row and ``bend`` b
+    px per row^2 (N,) at m): pixel q at image column c reads row x at c + f(x) - f(q) (by
+    linear interpolation in ``strip``); the value is kept below the pixel's own. A run longer
+    than ``lim`` or reaching the strip's first or last row takes the opening."""
+    out = strip.copy()
+    width = strip.shape[1]
+    for g in range(bounds.size - 1):
+        t0, t1 = bounds[g], bounds[g + 1]
+        for k in range(width):
+            t = t0
+            while t < t1:
+                if not mask[t, k]:
+                    t += 1
+                    continue
+                start = t
+                while t < t1 and mask[t, k]:
+                    t += 1
+                stop = t
+                n = stop - start
+                if start == t0 or stop == t1 or n > lim:
+                    for q in range(start, stop):
+                        out[q, k] = opened[q, k]
+                    continue
+                a = start - 1
+                mid = start + n // 2
+                s = slope[mid]
+                b = bend[mid]
+                fa = s * (a - mid) + b * (a - mid) * (a - mid)
+                fb = s * (stop - mid) + b * (stop - mid) * (stop - mid)
+                step = 1.0 / float(np.float32(n + 1))
+                for q in range(start, stop):
+                    # the pixel's image column less the parabola at its row
+                    c = col0[q] + k - (s * (q - mid) + b * (q - mid) * (q - mid))
+                    above = _strip_sample(strip, a, c + fa - col0[a])
+                    below = _strip_sample(strip, stop, c + fb - col0[stop])
+                    val = float(above) + float(np.float32(below - above)) * ((q - a) * step)
+                    out[q, k] = np.float32(min(val, float(strip[q, k])))
+    return out
 
 
 #: Points per batch of :func:`_steger_kernel`.
@@ -719,55 +726,57 @@ _STEGER_BATCH = 16
 
 
 @njit(cache=True)
-def _steger_kernel(slit, u, r, active, ss, max_shift):
-    """Steger's centres (K,) px and where they are usable, by two Newton steps from ``u`` on
-    the slit image ``slit`` (H, W) float32 (the dots that the steps can read refilled by
-    :func:`_refill_dots`), for the ``active`` points (the others keep ``u``, not usable)."""
-    h, w = slit.shape
+def _steger_kernel(strip, col0, where, u, idx, ss, max_shift, w):
+    """Steger's centres (K,) px and where they are usable, by one Newton step from ``u`` on
+    the slit image's strips ``strip`` (N, D) float32 (the dots refilled,
+    :func:`_refill_strips`; stacked row t holds image columns ``col0[t]`` .. of a ``w`` px
+    wide image, clamped to it), for the points ``idx`` (in the order of their stacked rows
+    ``where`` (K,), so that the reads follow the memory; the other points keep ``u``, not
+    usable; so does a point whose window would reach beyond its strip). The step is clamped
+    to 1 px."""
+    width = strip.shape[1]
     K = u.size
     rad = int(math.ceil(3.0 * ss)) + 1
     inv2 = 1.0 / (ss * ss)
     inv4 = inv2 * inv2
     # Gaussian weights exp(-(t / ss)^2 / 2) at t = f + k (f = c0 - x, k = -rad .. rad) as
-    # exp(-f^2 / 2 ss^2) exp(-k^2 / 2 ss^2) exp(-f / ss^2)^k: two exponentials per evaluation
+    # exp(-f^2 / 2 ss^2) exp(-k^2 / 2 ss^2) exp(-f / ss^2)^k: two exponentials per point
     gk = np.empty(2 * rad + 1)
     for k in range(-rad, rad + 1):
         gk[k + rad] = math.exp(-0.5 * k * k * inv2)
     m = u.copy()
     ok = np.zeros(K, np.bool_)
-    # the active points _STEGER_BATCH at a time: each Newton step's samples for the batch,
-    # then its sums (:func:`_steger_sums`), the batch's independent sums interleaved
-    idx = np.flatnonzero(active)
+    # the points _STEGER_BATCH at a time: the batch's samples, then its sums
+    # (:func:`_steger_sums`), the batch's independent sums interleaved
     nb = _STEGER_BATCH
     p = np.empty((2 * rad + 1, nb))
-    mi, fb, eb, ek = np.empty(nb), np.empty(nb), np.empty(nb), np.empty(nb)
+    fb, eb, ek = np.empty(nb), np.empty(nb), np.empty(nb)
     d1, d2 = np.empty(nb), np.empty(nb)
-    good = np.zeros(nb, np.bool_)
+    inside = np.zeros(nb, np.bool_)
     for s0 in range(0, idx.size, nb):
         n = min(nb, idx.size - s0)
         for j in range(n):
-            mi[j] = u[idx[s0 + j]]
-        for _ in range(2):  # Newton steps
-            for j in range(n):
-                ri = r[idx[s0 + j]]
-                x = min(max(mi[j], 0.0), w - 1.0)
-                c0 = int(math.floor(x))
-                f = c0 - x
-                e = math.exp(-f * inv2)
-                fb[j] = f
-                eb[j] = e
-                ek[j] = math.exp(-0.5 * f * f * inv2) / e**rad  # the k = -rad factor
-                for k in range(-rad, rad + 1):
-                    p[k + rad, j] = float(slit[ri, min(max(c0 + k, 0), w - 1)])
-            _steger_sums(p, fb[:n], eb[:n], ek[:n], gk, d1[:n], d2[:n], inv2, inv4)
-            for j in range(n):
-                good[j] = d2[j] < 0
-                step = -(d1[j] * inv2) / d2[j] if good[j] else 0.0
-                mi[j] = mi[j] + min(max(step, -1.0), 1.0)
+            i = idx[s0 + j]
+            t = where[i]
+            x = min(max(u[i], 0.0), w - 1.0)
+            c0 = int(math.floor(x))
+            f = c0 - x
+            e = math.exp(-f * inv2)
+            fb[j] = f
+            eb[j] = e
+            ek[j] = math.exp((rad - 0.5 * f) * f * inv2)  # the k = -rad factor
+            k0 = c0 - rad - col0[t]  # the first sample's column in the strip
+            inside[j] = 0 <= k0 and k0 + 2 * rad < width
+            k0 = min(max(k0, 0), width - 2 * rad - 1)
+            for k in range(2 * rad + 1):
+                p[k, j] = float(strip[t, k0 + k])
+        _steger_sums(p, fb[:n], eb[:n], ek[:n], gk, d1[:n], d2[:n], inv2, inv4)
         for j in range(n):
             i = idx[s0 + j]
-            m[i] = mi[j]
-            ok[i] = good[j] and abs(mi[j] - u[i]) <= max_shift
+            good = d2[j] < 0
+            step = -(d1[j] * inv2) / d2[j] if good else 0.0
+            m[i] = u[i] + min(max(step, -1.0), 1.0)
+            ok[i] = good and inside[j] and abs(m[i] - u[i]) <= max_shift
     return m, ok
 
 
@@ -798,8 +807,8 @@ def _steger_sums(p, f, e, ek, gk, d1, d2, inv2, inv4):
 @njit(cache=True)
 def _segment_rows(seg, r, span, end):
     """Points keyed by (segment, row): the key (K,) (-1 without a segment), the order that
-    sorts it (stable), each point's place in that order, the sorted keys, and how far each
-    point lies inside its segment beyond ``end`` rows from either end (K,)."""
+    sorts it (stable), the sorted keys, and how far each point lies inside its segment beyond
+    ``end`` rows from either end (K,)."""
     K = seg.size
     key = np.empty(K, np.int64)
     top = -1
@@ -827,10 +836,8 @@ def _segment_rows(seg, r, span, end):
                 break
     if not ordered:
         order = np.argsort(key, kind="mergesort")
-    pos = np.empty(K, np.intp)
     skey = np.empty(K, np.int64)
     for j in range(K):
-        pos[order[j]] = j
         skey[j] = key[order[j]]
     inner = np.empty(K, np.int64)
     j = 0
@@ -842,11 +849,11 @@ def _segment_rows(seg, r, span, end):
             i = order[q]
             inner[i] = min(r[i] - r[order[j]], r[order[e]] - r[i]) - end
         j = e + 1
-    return key, order, pos, skey, inner
+    return key, order, skey, inner
 
 
 @njit(cache=True)
-def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
+def _fit_kernel(seg, key, order, skey, inner, m, u, row_ok, R, deg):
     """Least-squares polynomial of degree ``deg`` in dv through the Steger centres ``m`` of the
     same segment's rows v - R .. v + R (symmetric window shrunk at the segment's ends, rows
     with ``inner`` < 0 left out), relative to each point's ``u``: shift and ok (K,). ``deg``
@@ -863,7 +870,14 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
     bend = np.full(K, np.nan)
     ok = np.zeros(K, np.bool_)
     need = min(3 if auto else deg + 2, 2 * R + 1)
-    for i in range(K):
+    # the centres and the rows that take part, in sorted order: the windows read them in a row
+    ms = np.empty(K)
+    use = np.empty(K, np.bool_)
+    for q in range(K):
+        ms[q] = m[order[q]]
+        use[q] = row_ok[order[q]] and inner[order[q]] >= 0
+    for p in range(K):
+        i = order[p]
         reach = min(inner[i], R)
         if seg[i] < 0 or inner[i] < 0 or reach < R // 2:
             continue
@@ -874,7 +888,7 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
         count = 0
         # leftmost sorted position with skey >= key + dv (np.searchsorted), walked back from
         # the point's own position for dv = -reach, then forward as dv grows
-        q = pos[i]
+        q = p
         while q > 0 and skey[q - 1] >= key[i] - reach:
             q -= 1
         for dv in range(-reach, reach + 1):
@@ -883,11 +897,10 @@ def _fit_kernel(seg, key, order, pos, skey, inner, m, u, row_ok, R, deg):
                 q += 1
             if q == K or skey[q] != target:
                 continue
-            nb = order[q]
-            if not row_ok[nb] or inner[nb] < 0:
+            if not use[q]:
                 continue
             count += 1
-            e = m[nb] - u[i]
+            e = ms[q] - u[i]
             fv = float(dv)
             f2 = fv * fv
             m0 += 1.0
@@ -1095,7 +1108,11 @@ def _row_gaps_kernel(u, r, h):
         idx = order[start[q] : start[q + 1]]
         if idx.size < 2:
             continue
-        srt = idx[np.argsort(u[idx], kind="mergesort")]
+        srt = idx  # the points of a row come in order of u as from the extraction
+        for j in range(idx.size - 1):
+            if u[idx[j + 1]] < u[idx[j]]:
+                srt = idx[np.argsort(u[idx], kind="mergesort")]
+                break
         for j in range(srt.size - 1):
             d = u[srt[j + 1]] - u[srt[j]]
             gap[srt[j]] = min(gap[srt[j]], d)
@@ -1108,14 +1125,17 @@ def compile_kernels() -> None:
 
     Numba compiles them on first use (about 20 s) and caches the machine code on disk beside
     the package, so only the first refinement after an install pays it;
-    :func:`multislit.stripes.compile_kernels` calls this.
+    :func:`multislit.stripes.compile_kernels` calls this. The refinement is run on small
+    uint8, uint16 and float32 images (the strips are read from each pixel type by its own
+    machine code).
     """
     img = np.zeros((48, 48), np.uint8)
     img[:, 22:26] = 200
     img[10:12, 30:32] = 120  # a dot beside the stripe
     img[30:32, 26:28] = 255  # and one touching it (its refill)
     v = np.arange(4.0, 44.0)
-    refine_centres(img, np.full(len(v), 23.5), v, np.zeros(len(v), np.int64), 4.0, 2.0)
+    for x in (img, img.astype(np.uint16) << 4, img.astype(np.float32) / 255.0):
+        refine_centres(x, np.full(len(v), 23.5), v, np.zeros(len(v), np.int64), 4.0, 2.0)
     one = np.zeros(1)  # the curved fit's choice, which a straight stripe never reaches
     _curved_kernel(np.zeros(1, np.intp), np.zeros(1, np.int64), one, one, one, one, 1.0, 1.0, 1)
     row_median_background(img, 3)
