@@ -1,4 +1,5 @@
 import json
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -18,6 +19,7 @@ from multislit.identify import (
     window_sums,
 )
 from multislit.identify.patches import _remap_patches
+from multislit.identify.reference import _fit_curves
 from multislit.io import Capture
 
 
@@ -100,6 +102,34 @@ def test_reference_with_a_missing_slit_is_an_error(scenes_capture):
         ReferenceImageError, match=r"ref_0900: found 24 slits in most rows, expected 25"
     ):
         prepare_reference(imgs, 25, [p.stem for p in cap.references])
+
+
+def test_reference_curves_from_slits_broken_into_short_pieces():
+    """A board whose slits the linking breaks into pieces shorter than the image's twentieth
+    (dense slits, dots on them), plus a residue of dots lined up along the rows: every slit is
+    numbered from the rows that show all of them, and its curve is the true one."""
+    h, n = 400, 6
+    rows = np.arange(h, dtype=np.float64)
+    true_u = [40.0 + 30.0 * k + 0.02 * rows + 1e-5 * (rows - 200) ** 2 for k in range(n)]
+    u, v, seg = [], [], []
+    s = 0
+    for k in range(n):
+        # pieces of 12 rows, each slit's breaks at other rows than its neighbours'
+        for start in range(-(3 * k % 12), h, 12):
+            r = rows[max(start, 0) : start + 12]
+            u.append(true_u[k][r.astype(int)])
+            v.append(r)
+            seg.append(np.full(r.size, s))
+            s += 1
+    # a residue of dots lined up along v between slits 2 and 3, over rows 100-107
+    u.append(np.full(8, 0.5 * (true_u[2][100] + true_u[3][100])))
+    v.append(np.arange(100.0, 108.0))
+    seg.append(np.full(8, s))
+    ex = SimpleNamespace(u=np.concatenate(u), v=np.concatenate(v), segment=np.concatenate(seg))
+    coeffs, vrange = _fit_curves(ex, n, "broken", h)
+    for k in range(n):
+        assert np.max(np.abs(curve_u(coeffs[k], rows) - true_u[k])) < 1e-6
+        assert vrange[k, 0] == 0 and vrange[k, 1] == h - 1
 
 
 def test_too_few_reference_images(scenes_capture):

@@ -72,16 +72,14 @@ def _fit_curves(
 ) -> tuple[F64, F64]:
     """Group one reference image's centre points into ``num_slits`` slits; a curve per slit.
 
-    On a flat board every row crosses all N slits in order. Rows that show exactly N stripe
-    centres number them 0..N-1 from left to right; each linked segment takes the number its
-    points got most often, so a slit broken into pieces is still one slit.
+    On a flat board every row crosses all N slits in order. Rows that show exactly N linked
+    stripe centres number them 0..N-1 from left to right; each linked segment takes the number
+    its points got most often, so a slit broken into pieces, short ones included, is still one
+    slit. A residue of dots lined up along v makes its rows show N + 1 centres: it gets no
+    number, and its points are left out.
     """
     seg = ex.segment
-    ids, counts = np.unique(seg[seg >= 0], return_counts=True)
-    # on a flat board every slit runs across the image: a short segment is a residue of dots
-    # lined up along v, not a slit
-    long_ids = ids[counts >= max(15, 0.05 * image_height)]
-    use = np.isin(seg, long_ids)
+    use = seg >= 0
     if not np.any(use):
         raise ReferenceImageError(
             f"reference image {name}: no slits found (is the board lit by the lasers?)"
