@@ -36,7 +36,12 @@ from multislit.stripes.separation import (
     separate_validated,
 )
 from multislit.stripes.sizes import _best_scale, opening_length, ridge_contrast
-from multislit.stripes.slope import LEAN_DECIMATION, cell_slopes, slope_cells, slope_sigma
+from multislit.stripes.slope import (
+    _blur_is_opencvs,
+    _slopes_at,
+    _tensor_at,
+    slope_sigma,
+)
 
 DTYPES = (np.uint8, np.uint16, np.float32)
 
@@ -291,66 +296,56 @@ def test_vertical_opening_matches_running_extremes(dtype):
             np.testing.assert_array_equal(got, ref)
 
 
-def _leaning_stripes(deg, spacing, h=256, w=256, fwhm=3.0, jump_row=None, jump=0.0):
-    """uint8 image of parallel Gaussian stripes leaning ``deg`` from the vertical (right going
-    down), ``spacing`` px apart along the rows; from ``jump_row`` on shifted ``jump`` px along
-    the rows (an occlusion)."""
-    s = math.tan(math.radians(deg))
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    x = xx - s * yy
-    if jump_row is not None:
-        x[jump_row:] -= jump
-    d = x % spacing
-    d = np.minimum(d, spacing - d)
-    return (200.0 * np.exp(-0.5 * (d / (fwhm / 2.3548)) ** 2)).astype(np.uint8)
+def _slope_ref(hp, sigma):
+    """The stripe slope of the whole image: the structure tensor by cv2.Sobel and
+    cv2.GaussianBlur over every pixel."""
+    gu = cv2.Sobel(hp, cv2.CV_32F, 1, 0, ksize=3)
+    gv = cv2.Sobel(hp, cv2.CV_32F, 0, 1, ksize=3)
+    juu = cv2.GaussianBlur(gu * gu, (0, 0), sigma)
+    juv = cv2.GaussianBlur(gu * gv, (0, 0), sigma)
+    return np.clip(-juv / np.maximum(juu, np.float32(1e-6)), np.float32(-1.0), np.float32(1.0))
 
 
-@pytest.mark.parametrize(("cell", "spacing"), [(4, 20.0), (4, 12.0), (2, 6.5)])
-@pytest.mark.parametrize("deg", [-17.5, 17.5, 40.0])
-def test_slope_cells_read_the_stripes_lean(deg, cell, spacing):
-    """The cells' slope, read on the stripes, is the stripes' du/dv, on stripes as dense as
-    the row pass's cells (4 px) and the column pass's (2 px) meet; measured within 0.024 px
-    per row (3 px wide stripes, integration scale 4.5 px)."""
-    img = _leaning_stripes(deg, spacing)
-    cells = slope_cells(img, slope_sigma(9), cell)
-    assert cells.shape == (256 // cell, 256 // cell) and cells.dtype == np.float32
-    rows, cols = np.nonzero(img[32:-32, 32:-32] > 150)
-    got = cell_slopes(cells, cell, rows + 32, cols + 32)
-    assert got.dtype == np.float32
-    np.testing.assert_allclose(got, math.tan(math.radians(deg)), atol=0.03)
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_slopes_at_points_equal_whole_image_structure_tensor(dtype):
+    rng = np.random.default_rng(13)
+    shapes = ((37, 48), (29, 45), (70, 61), (12, 1), (1, 9), (5, 3), (40, 203))
+    for h, w in shapes:
+        hp = _image(rng, dtype, h, w)
+        for sigma in (1.5, 2.5, 4.5):
+            ref = _slope_ref(hp, sigma)
+            k = min(h * w, 300)
+            flat = rng.choice(h * w, size=k, replace=False)
+            mids, cols = np.divmod(flat, w)
+            got = _slopes_at(hp, sigma, mids, cols)
+            assert got.dtype == np.float32
+            np.testing.assert_array_equal(got, ref[mids, cols])
+        # every pixel, in any order, with repeats
+        mids, cols = (a.ravel() for a in np.indices((h, w)))
+        order = rng.permutation(np.r_[np.arange(h * w), np.arange(h * w)[: h * w // 3]])
+        np.testing.assert_array_equal(
+            _slopes_at(hp, 2.5, mids[order], cols[order]), _slope_ref(hp, 2.5)[mids, cols][order]
+        )
+    assert (
+        _slopes_at(_image(rng, dtype, 9, 9), 2.5, np.empty(0, np.intp), np.empty(0, np.intp)).size
+        == 0
+    )
 
 
-def test_slope_cells_do_not_lean_at_a_jump():
-    """Upright stripes that jump 4 px along the rows at one row (an occlusion) read upright
-    beside the jump (the refill interpolates across the dots there along the stripe, not
-    across the jump); measured at most 0.057 px per row on the stripes within 6 rows of it."""
-    img = _leaning_stripes(0.0, 24.0, jump_row=128, jump=4.0)
-    cells = slope_cells(img, slope_sigma(7), 4)
-    rows, cols = np.nonzero(img[122:134, 16:-16] > 150)
-    got = cell_slopes(cells, 4, rows + 122, cols + 16)
-    assert np.abs(got).max() < 0.06
-
-
-def test_cell_slopes_upright_where_no_cell_has_a_direction():
-    cells = np.full((6, 8), np.nan, np.float32)
-    cells[:, 4:] = 1.0  # the right half leans 1 px per row
-    rows, cols = (a.ravel() for a in np.indices((24, 32)))
-    got = cell_slopes(cells, 4, rows, cols).reshape(24, 32)
-    np.testing.assert_array_equal(got[:, :14], 0.0)  # every neighbouring cell without one
-    np.testing.assert_array_equal(got[:, 14:], 1.0)  # the leaning cells' own
-    blank = slope_cells(np.zeros((40, 40), np.uint8), 3.5, 4)  # no direction anywhere
-    assert np.isnan(blank).all()
-    np.testing.assert_array_equal(cell_slopes(blank, 4, rows, cols), 0.0)
-
-
-def test_cell_slopes_interpolate_between_the_cells_centres():
-    cells = np.zeros((6, 8), np.float32)
-    cells[:, 4:] = 1.0
-    rows, cols = (a.ravel() for a in np.indices((24, 32)))
-    got = cell_slopes(cells, 4, rows, cols).reshape(24, 32)
-    np.testing.assert_array_equal(got[:, :14], 0.0)  # between centres of cells of 0
-    np.testing.assert_array_equal(got[:, 18:], 1.0)
-    np.testing.assert_allclose(got[:, 14:18], np.tile(np.arange(0.125, 1.0, 0.25), (24, 1)))
+def test_tensor_kernel_reproduces_opencv_gaussian():
+    """The compiled Gaussian at points gives cv2.GaussianBlur's float32 values bit for bit,
+    on widths that reach OpenCV's vector loops and its scalar tail, near every border."""
+    if not _blur_is_opencvs():
+        pytest.skip("this OpenCV build rounds its Gaussian otherwise: cv2.GaussianBlur is used")
+    rng = np.random.default_rng(14)
+    for h, w, sigma in ((50, 77, 3.5), (8, 1280, 4.5), (61, 13, 1.5), (2, 40, 2.5)):
+        x = rng.normal(0.0, 500.0, (h, w)).astype(np.float32)
+        y = rng.normal(0.0, 50.0, (h, w)).astype(np.float32)
+        mids, cols = (a.ravel() for a in np.indices((h, w)))
+        taps = cv2.getGaussianKernel(round(sigma * 8 + 1) | 1, sigma, cv2.CV_32F).ravel()
+        juu, juv = _tensor_at(x, x, y, taps, mids, cols)
+        np.testing.assert_array_equal(juu, cv2.GaussianBlur(x * x, (0, 0), sigma).ravel())
+        np.testing.assert_array_equal(juv, cv2.GaussianBlur(x * y, (0, 0), sigma).ravel())
 
 
 def _clip_level_ref(img, step):
@@ -396,17 +391,15 @@ def test_saturation_compare_in_image_type_equals_float_compare(dtype):
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
-def test_slit_image_equals_refill_with_the_cells_slope(dtype):
+def test_slit_image_equals_refill_with_whole_image_slope(dtype):
     """The extraction's slit image (the slope only at the runs that need it) is fill_dots with
-    the cells' slope read at every pixel (on the opening that follows leaning stripes)."""
+    the whole image's stripe slope (on the opening that follows leaning stripes)."""
     rng = np.random.default_rng(17)
     for h, w, ds in ((64, 80, 1.5), (57, 45, 2.1)):
         img = _image(rng, dtype, h, w)
         hp, slits, _, noise = separate_validated(img, 3.0, ds, None)
         length = opening_length(ds)
-        rows, cols = (a.ravel() for a in np.indices((h, w)))
-        cells = slope_cells(hp, slope_sigma(length), LEAN_DECIMATION)
-        slope = cell_slopes(cells, LEAN_DECIMATION, rows, cols).reshape(h, w)
+        slope = stripe_slope(hp, slope_sigma(length))
         ref = fill_dots(hp, stripe_opening(hp, length, 3.0 * noise), 3.0 * noise, length, slope)
         assert slits.dtype == hp.dtype
         assert np.any(slits != hp)  # dots were refilled

@@ -28,7 +28,6 @@ from numba import njit
 from numpy.typing import NDArray
 
 from multislit.stripes.sizes import FWHM_PER_SIGMA
-from multislit.stripes.slope import cell_tensor, tensor_slopes
 from multislit.stripes.slope import reflect101 as reflect
 
 F32 = NDArray[np.float32]
@@ -105,11 +104,87 @@ def lean_slopes(slits: NDArray, stripe_width_px: float) -> F32:
     if h < 2 * d or w < 2 * d:
         return np.zeros((max(h // d, 1), max(w // d, 1)), np.float32)
     half = cv2.resize(slits, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    tensor = cell_tensor(half, h // d, w // d, d // 2)
+    tensor = _cell_tensor(half, h // d, w // d, d // 2)
     tensor = cv2.GaussianBlur(tensor, (0, 0), max(stripe_width_px / d, 0.5))
-    return tensor_slopes(
-        tensor, np.float32(_LEAN_COHERENCE), np.float32(SHEAR_MIN_SLOPE), np.float32(0.0)
-    )
+    return _tensor_slopes(tensor, np.float32(_LEAN_COHERENCE), np.float32(SHEAR_MIN_SLOPE))
+
+
+@njit(cache=True)
+def _cell_tensor(img, ch, cw, f):
+    """(ch, cw, 3) float32: per cell of ``f`` x ``f`` px of ``img`` (H, W) (the last cells
+    take the remainder), the means of gu^2, gv^2 and 2 gu gv of its 3 x 3 Sobel derivatives
+    (the image's border pixels left out). Row by row: the derivatives of a row in one pass
+    (the loop vectorises), then summed into its cells."""
+    h, w = img.shape
+    out = np.zeros((ch, cw, 3), np.float32)
+    count = np.zeros((ch, cw), np.float32)
+    cell = np.empty(w, np.intp)
+    for j in range(w):
+        cell[j] = min(j // f, cw - 1)
+    uu = np.zeros(w, np.float32)
+    vv = np.zeros(w, np.float32)
+    uv = np.zeros(w, np.float32)
+    for i in range(1, h - 1):
+        a = img[i - 1]
+        b = img[i]
+        c = img[i + 1]
+        for j in range(1, w - 1):
+            gu = (
+                np.float32(a[j + 1])
+                - np.float32(a[j - 1])
+                + 2 * (np.float32(b[j + 1]) - np.float32(b[j - 1]))
+                + np.float32(c[j + 1])
+                - np.float32(c[j - 1])
+            )
+            gv = (
+                np.float32(c[j - 1])
+                - np.float32(a[j - 1])
+                + 2 * (np.float32(c[j]) - np.float32(a[j]))
+                + np.float32(c[j + 1])
+                - np.float32(a[j + 1])
+            )
+            uu[j] = gu * gu
+            vv[j] = gv * gv
+            uv[j] = 2 * gu * gv
+        ci = min(i // f, ch - 1)
+        row = out[ci]
+        for j in range(1, w - 1):
+            k = cell[j]
+            row[k, 0] += uu[j]
+            row[k, 1] += vv[j]
+            row[k, 2] += uv[j]
+            count[ci, k] += 1
+    for ci in range(ch):
+        for cj in range(cw):
+            n = max(count[ci, cj], np.float32(1.0))
+            for k in range(3):
+                out[ci, cj, k] /= n
+    return out
+
+
+@njit(cache=True)
+def _tensor_slopes(tensor, coherence, min_slope):
+    """(ch, cw) float32, the lean of the stripes from ``tensor`` (ch, cw, 3) (J_uu, J_vv,
+    2 J_uv): the gradients lie across the stripe at theta from the u axis, tan 2 theta =
+    2 J_uv / (J_uu - J_vv), and a stripe f(u - t v) has gradients along (1, -t), so
+    t = -tan theta, clipped to +-1; 0 where the coherence is below ``coherence`` or
+    |t| below ``min_slope``."""
+    ch, cw = tensor.shape[0], tensor.shape[1]
+    out = np.zeros((ch, cw), np.float32)
+    for i in range(ch):
+        for j in range(cw):
+            juu, jvv, juv2 = tensor[i, j, 0], tensor[i, j, 1], tensor[i, j, 2]
+            diff = juu - jvv
+            mag = np.sqrt(diff * diff + juv2 * juv2)
+            if not mag >= coherence * (juu + jvv) + 1e-12:
+                continue
+            # tan theta = sin 2 theta / (1 + cos 2 theta) = 2 J_uv / (J_uu - J_vv + mag)
+            den = diff + mag
+            t = -juv2 / den if den > 0 else (-1.0 if juv2 > 0 else 1.0)
+            t = min(max(t, -1.0), 1.0)
+            if abs(t) >= min_slope:
+                out[i, j] = t
+    return out
 
 
 def slopes_at(cells: F32, r: NDArray[np.intp], c: NDArray[np.intp]) -> NDArray[np.float64]:

@@ -19,13 +19,7 @@ from multislit.stripes.sizes import (
     median_stride,
     opening_length,
 )
-from multislit.stripes.slope import (
-    LEAN_DECIMATION,
-    cell_slopes,
-    reflect101,
-    slope_cells,
-    slope_sigma,
-)
+from multislit.stripes.slope import LEAN_DECIMATION, _slopes_at, reflect101, slope_sigma
 from multislit.stripes.validation import SlitExtractionError, as_image, positive_px
 from multislit.summaries import Summarised
 
@@ -489,12 +483,10 @@ def _fill(
     length: int,
     slope: NDArray | float | None,
     keep_ends: bool = False,
-    cell: int = LEAN_DECIMATION,
 ) -> NDArray:
     """:func:`fill_dots`; ``slope`` the slope image, None (straight above and below) or the
     integration scale (px, float) of the structure tensor that gives the slope where a run
-    needs it: per cell of ``cell`` px (:func:`~multislit.stripes.slope.slope_cells`), read at
-    the run (:func:`~multislit.stripes.slope.cell_slopes`)."""
+    needs it (:func:`_slopes_at`)."""
     out = hp.copy()
     mask = dot_mask(hp, opened, tau)
     h, w = mask.shape
@@ -512,8 +504,7 @@ def _fill(
         if isinstance(slope, np.ndarray):
             slopes[inner] = slope[mids, cols[inner]]
         else:
-            cells = slope_cells(hp, float(slope), cell)
-            slopes[inner] = cell_slopes(cells, cell, mids, cols[inner])
+            slopes[inner] = _slopes_at(hp, slope, mids, cols[inner])
     rint = bool(np.issubdtype(hp.dtype, np.integer))
     end_rows = int(length) // 2 if keep_ends else 0
     _fill_runs(hp, opened, cols, starts, stops, slopes, rint, out, lim, end_rows)
@@ -700,9 +691,8 @@ def separate_validated(
     ``bg``: the row background (:func:`background_validated`) if already made; ``noise``:
     :func:`noise_from_difference` of ``img`` if already known;
     ``lean_decimation``: the cell (px) of the lean map the opening follows the stripes by
-    (:func:`~multislit.stripes.openings.stripe_opening`) and of the slopes the dots are
-    refilled along (:func:`~multislit.stripes.slope.slope_cells`); ``keep_ends``: the refill
-    keeps the stripes' ends (:func:`fill_dots`).
+    (:func:`~multislit.stripes.openings.stripe_opening`); ``keep_ends``: the refill keeps the
+    stripes' ends (:func:`fill_dots`).
     Returns highpass, slits, saturated mask, noise sigma of the highpass.
     """
     if bg is None:
@@ -718,7 +708,7 @@ def separate_validated(
     # dot pixels: more than 3 noise sigmas above the opening (0.1 % false alarms on background;
     # false alarms on stripes are harmless, they are interpolated from their neighbours along
     # the stripe's local slope)
-    slits = _fill(hp, opened, 3.0 * noise, length, slope_sigma(length), keep_ends, lean_decimation)
+    slits = _fill(hp, opened, 3.0 * noise, length, slope_sigma(length), keep_ends)
     level = _saturation_level(img, saturation_level)
     if level is None:
         sat = np.zeros(img.shape, bool)

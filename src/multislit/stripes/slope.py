@@ -3,9 +3,13 @@ slope along which the dots on a leaning stripe are refilled and its opening foll
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 from numpy.typing import NDArray
 
 F32 = NDArray[np.float32]
@@ -49,66 +53,348 @@ def stripe_slope(hp: NDArray, sigma: float) -> NDArray[np.float32]:
     return np.clip(s, -1.0, 1.0)
 
 
-def slope_cells(hp: NDArray, sigma: float, cell: int) -> F32:
-    """The stripes' lean du/dv per cell of ``cell`` x ``cell`` px: (H // cell, W // cell)
-    float32, px per row, clipped to +-1; NaN where the image has no one direction (an
-    isolated dot, blank background: the structure tensor's coherence below
-    :data:`_LEAN_COHERENCE`). Read at a pixel by :func:`cell_slopes`.
+@intrinsic
+def _fma32(typingctx, a, b, c):
+    """``a * b + c`` in float32 rounded once (LLVM's fma: the CPU's fused multiply-add)."""
+    sig = types.float32(types.float32, types.float32, types.float32)
 
-    The direction of the structure tensor of ``hp``'s gradients (3 x 3 Sobel, at full
-    resolution) averaged over each cell (:func:`cell_tensor`; the last cells take the
-    image's remainder) and integrated over a Gaussian of ``sigma`` px, as :func:`lean_map`
-    reads it. Gradients on a coarser grid than the image's (:func:`lean_map`'s) read the end
-    of a stripe beside its continuation (an occlusion's jump) as a lean, and dense stripes
-    too upright; averaged after the products, the cells keep what the image's own tensor says
-    at the scale of a few stripe widths.
+    def codegen(context, builder, signature, args):
+        f32 = ir.FloatType()
+        fn = builder.module.declare_intrinsic("llvm.fma", [f32], ir.FunctionType(f32, [f32] * 3))
+        return builder.call(fn, args)
 
-    Parameters
-    ----------
-    hp : (H, W) highpass image (uint8, uint16 or float32)
-    sigma : float, px, the integration scale (:func:`slope_sigma`)
-    cell : int, px
-    """
-    h, w = hp.shape
-    tensor = cell_tensor(hp, max(h // cell, 1), max(w // cell, 1), cell)
-    tensor = cv2.GaussianBlur(tensor, (0, 0), max(sigma / cell, 0.5))
-    return tensor_slopes(tensor, np.float32(_LEAN_COHERENCE), np.float32(0.0), np.float32(np.nan))
+    return sig, codegen
 
 
-def cell_slopes(slopes: F32, cell: int, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> F32:
-    """(K,) float32, px per row: :func:`slope_cells`' ``slopes`` ((H // cell, W // cell)
-    float32, NaN: no direction) at the pixels (``rows``, ``cols``) (K,), interpolated
-    bilinearly between the centres of the four cells around each (clamped at the outer cells'
-    centres) over those with a direction; 0 (upright) where none has one."""
-    return _cell_slopes(np.ascontiguousarray(slopes, np.float32), int(cell), rows, cols)
+# The slope's Gaussian, as cv2.GaussianBlur computes it on float32 data (OpenCV's separable
+# filter): a pass along each row, the taps summed in order from the first, then a pass along
+# each column, the centre tap first and then the pairs of rows symmetric about it; each step a
+# multiply-add rounded to float32. OpenCV's vector loops fuse the multiply and the add (one
+# rounding) and its scalar tail does not: the columns below ``_ROW_FUSED_LANES * (W //
+# _ROW_FUSED_LANES)`` are fused in the row pass, those below ``_COL_FUSED_LANES * (W //
+# _COL_FUSED_LANES)`` in the column pass (its AVX2 build). A dimension of 1 px is not
+# filtered. :func:`_blur_is_opencvs` checks this against cv2.GaussianBlur once per process.
+_ROW_FUSED_LANES = 4
+_COL_FUSED_LANES = 8
+#: Columns per block of the row pass's bookkeeping (which rows of which columns to make).
+_TENSOR_BLOCK = 8
 
 
 @njit(cache=True)
-def _cell_slopes(t, d, rows, cols):
-    """:func:`cell_slopes` from the cells' slopes ``t`` (ch, cw) float32."""
-    ch, cw = t.shape
-    out = np.zeros(rows.size, np.float32)
-    one = np.float32(1.0)
-    for i in range(rows.size):
-        y = min(max((rows[i] + 0.5) / d - 0.5, 0.0), ch - 1.0)
-        x = min(max((cols[i] + 0.5) / d - 0.5, 0.0), cw - 1.0)
-        y0 = min(int(y), max(ch - 2, 0))
-        x0 = min(int(x), max(cw - 2, 0))
-        fy = np.float32(y - y0)
-        fx = np.float32(x - x0)
-        num = np.float32(0.0)
-        den = np.float32(0.0)
-        for k in range(4):
-            yy = min(y0 + 1, ch - 1) if k >= 2 else y0
-            xx = min(x0 + 1, cw - 1) if k % 2 else x0
-            wt = (fy if k >= 2 else one - fy) * (fx if k % 2 else one - fx)
-            v = t[yy, xx]
-            if not np.isnan(v):
-                num += wt * v
-                den += wt
-        if den > 0:
-            out[i] = num / den
-    return out
+def _row_pass(pu, pv, g, ou, ov, c0, c1, fused):
+    """Row pass of the Gaussian ``g`` for columns ``c0`` .. ``c1 - 1`` of one row: ``ou``,
+    ``ov`` (W,) from the padded rows of products ``pu``, ``pv`` (W + len(g) - 1,); ``fused``:
+    one rounding per tap (see ``_ROW_FUSED_LANES``), else a product and a sum. (Unsigned
+    indices: no wraparound test, no views; the loops over columns vectorise.)"""
+    if c1 <= c0:
+        return
+    for c in range(c0, c1):
+        ou[np.uint64(c)] = 0.0
+        ov[np.uint64(c)] = 0.0
+    j = 0
+    if fused:
+        # eight taps per sweep, still summed in order (each column's sum is one chain of
+        # fused multiply-adds): one load and store of the sums per eight taps
+        while j + 8 <= g.size:
+            g0, g1, g2, g3 = g[j], g[j + 1], g[j + 2], g[j + 3]
+            g4, g5, g6, g7 = g[j + 4], g[j + 5], g[j + 6], g[j + 7]
+            for c in range(c0, c1):
+                q = np.uint64(c)
+                x = np.uint64(c + j)
+                a = _fma32(pu[x], g0, ou[q])
+                a = _fma32(pu[x + np.uint64(1)], g1, a)
+                a = _fma32(pu[x + np.uint64(2)], g2, a)
+                a = _fma32(pu[x + np.uint64(3)], g3, a)
+                a = _fma32(pu[x + np.uint64(4)], g4, a)
+                a = _fma32(pu[x + np.uint64(5)], g5, a)
+                a = _fma32(pu[x + np.uint64(6)], g6, a)
+                ou[q] = _fma32(pu[x + np.uint64(7)], g7, a)
+                b = _fma32(pv[x], g0, ov[q])
+                b = _fma32(pv[x + np.uint64(1)], g1, b)
+                b = _fma32(pv[x + np.uint64(2)], g2, b)
+                b = _fma32(pv[x + np.uint64(3)], g3, b)
+                b = _fma32(pv[x + np.uint64(4)], g4, b)
+                b = _fma32(pv[x + np.uint64(5)], g5, b)
+                b = _fma32(pv[x + np.uint64(6)], g6, b)
+                ov[q] = _fma32(pv[x + np.uint64(7)], g7, b)
+            j += 8
+    while j < g.size:
+        gj = g[j]
+        if fused:
+            for c in range(c0, c1):
+                q = np.uint64(c)
+                x = np.uint64(c + j)
+                ou[q] = _fma32(pu[x], gj, ou[q])
+                ov[q] = _fma32(pv[x], gj, ov[q])
+        else:
+            for c in range(c0, c1):
+                q = np.uint64(c)
+                x = np.uint64(c + j)
+                ou[q] = ou[q] + pu[x] * gj
+                ov[q] = ov[q] + pv[x] * gj
+        j += 1
+
+
+@njit(cache=True)
+def _column_pass(ru, rv, g, m, c, h, fused):
+    """Column pass of the Gaussian ``g`` at row ``m``, column ``c`` of an ``h``-row image from
+    the row pass's rows ``ru``, ``rv`` (rows, W), kept in a ring (image row q in ring row
+    q mod rows) that holds rows m - len(g) // 2 .. m + len(g) // 2 (reflected at the image
+    border); ``fused`` as in :func:`_row_pass`. Returns J_uu, J_uv (float32)."""
+    nr = ru.shape[0]
+    rk = g.size // 2
+    sm = m % nr
+    su = ru[sm, c] * g[rk]
+    sv = rv[sm, c] * g[rk]
+    for j in range(1, rk + 1):
+        a = reflect101(m + j, h) % nr
+        b = reflect101(m - j, h) % nr
+        gj = g[rk + j]
+        if fused:
+            su = _fma32(ru[a, c] + ru[b, c], gj, su)
+            sv = _fma32(rv[a, c] + rv[b, c], gj, sv)
+        else:
+            su = su + (ru[a, c] + ru[b, c]) * gj
+            sv = sv + (rv[a, c] + rv[b, c]) * gj
+    return su, sv
+
+
+@njit(cache=True)
+def _column_points(ru, rv, g, sm, pc, pf, su, sv, n):
+    """:func:`_column_pass` at the columns ``pc[:n]`` (uint64) of a row m whose rows
+    m - len(g) // 2 .. m + len(g) // 2 all lie in the image (m in ring row ``sm``), into
+    ``su``, ``sv``; ``pf``: fused (see :func:`_row_pass`) at each. The points advance
+    together, one tap at a time: independent sums, no wait on each other's roundings."""
+    nr, w = ru.shape
+    fu = ru.ravel()
+    fv = rv.ravel()
+    rk = g.size // 2
+    gc = g[rk]
+    om = np.uint64(sm * w)
+    all_fused = True
+    for p in range(n):
+        all_fused &= pf[p]
+        su[p] = fu[om + pc[p]] * gc
+        sv[p] = fv[om + pc[p]] * gc
+    a = sm
+    b = sm
+    for j in range(1, rk + 1):
+        a = a + 1 if a + 1 < nr else 0  # the ring rows of m + j and m - j
+        b = b - 1 if b > 0 else nr - 1
+        gj = g[rk + j]
+        oa = np.uint64(a * w)
+        ob = np.uint64(b * w)
+        if all_fused:
+            for p in range(n):
+                su[p] = _fma32(fu[oa + pc[p]] + fu[ob + pc[p]], gj, su[p])
+                sv[p] = _fma32(fv[oa + pc[p]] + fv[ob + pc[p]], gj, sv[p])
+            continue
+        for p in range(n):
+            xu = fu[oa + pc[p]] + fu[ob + pc[p]]
+            xv = fv[oa + pc[p]] + fv[ob + pc[p]]
+            if pf[p]:
+                su[p] = _fma32(xu, gj, su[p])
+                sv[p] = _fma32(xv, gj, sv[p])
+            else:
+                su[p] = su[p] + xu * gj
+                sv[p] = sv[p] + xv * gj
+
+
+@njit(cache=True)
+def _sobel_row(hp, r, gur, gvr):
+    """Row ``r`` of cv2.Sobel's 3x3 derivatives of an integer image ``hp`` (H, W) along u and
+    v (cv2.BORDER_REFLECT_101), as float32 into ``gur``, ``gvr`` (W,): sums of integers below
+    2^24, exact in float32 in any order (so the loop runs in float32 lanes, not Numba's int64
+    ones)."""
+    h, w = hp.shape
+    ra = hp[reflect101(r - 1, h)]
+    rb = hp[r]
+    rc = hp[reflect101(r + 1, h)]
+    two = np.float32(2.0)
+    # shifted 1-D views, indices from 0: the loop vectorises
+    al, am, ar = ra[: w - 2], ra[1 : w - 1], ra[2:]
+    bl, br = rb[: w - 2], rb[2:]
+    cl, cm, cr = rc[: w - 2], rc[1 : w - 1], rc[2:]
+    ou = gur[1 : w - 1]
+    ov = gvr[1 : w - 1]
+    for q in range(w - 2):
+        a0, a1, a2 = np.float32(al[q]), np.float32(am[q]), np.float32(ar[q])
+        b0, b2 = np.float32(bl[q]), np.float32(br[q])
+        c0, c1, c2 = np.float32(cl[q]), np.float32(cm[q]), np.float32(cr[q])
+        ou[q] = (a2 - a0) + two * (b2 - b0) + (c2 - c0)
+        ov[q] = (c0 + two * c1 + c2) - (a0 + two * a1 + a2)
+    for c in (0, w - 1):  # the reflected borders
+        cl = reflect101(c - 1, w)
+        cr = reflect101(c + 1, w)
+        a0, a1, a2 = np.float32(ra[cl]), np.float32(ra[c]), np.float32(ra[cr])
+        b0, b2 = np.float32(rb[cl]), np.float32(rb[cr])
+        c0, c1, c2 = np.float32(rc[cl]), np.float32(rc[c]), np.float32(rc[cr])
+        gur[c] = (a2 - a0) + two * (b2 - b0) + (c2 - c0)
+        gvr[c] = (c0 + two * c1 + c2) - (a0 + two * a1 + a2)
+
+
+@njit(cache=True)
+def _tensor_at(hp, gu, gv, g, mids, cols):
+    """J_uu and J_uv (K,) float32 of :func:`_structure_tensor` of ``hp`` (H, W) at the pixels
+    (``mids``, ``cols``) (K,), from the Sobel derivatives ``gu``, ``gv`` (H, W) float32 (or,
+    if they are (0, 0), those of an integer ``hp``, made row by row) and the Gaussian ``g``
+    (odd length, cv2.BORDER_REFLECT_101), with OpenCV's float32 arithmetic (see
+    ``_ROW_FUSED_LANES``). One pass down the rows: the row pass only on the column blocks
+    whose rows some point's column pass reads, kept for the last len(g) rows; the column pass
+    of a point as soon as its last row is made."""
+    h, w = hp.shape
+    rk = g.size // 2
+    bs = _TENSOR_BLOCK
+    nb = (w + bs - 1) // bs
+    nr = min(2 * rk + 1, h)
+    own = gu.shape[0] == 0
+    gub = np.empty(w, np.float32)
+    gvb = np.empty(w, np.float32)
+    # rows r of column block b that some point reads: a difference array summed down the rows
+    # (reflected rows near the borders fall inside mid - rk .. mid + rk, clamped); the points
+    # by the row that completes their column (counting sort)
+    diff = np.zeros((h + 1, nb), np.int32)
+    first = np.zeros(h + 1, np.intp)
+    for i in range(mids.size):
+        b = cols[i] // bs
+        diff[max(mids[i] - rk, 0), b] += 1
+        diff[min(mids[i] + rk, h - 1) + 1, b] -= 1
+        first[min(mids[i] + rk, h - 1) + 1] += 1
+    for r in range(h):
+        first[r + 1] += first[r]
+    order = np.empty(mids.size, np.intp)
+    fill = first[:h].copy()
+    for i in range(mids.size):
+        last = min(mids[i] + rk, h - 1)
+        order[fill[last]] = i
+        fill[last] += 1
+    cnt = np.zeros(nb, np.int32)
+    pad = w + 2 * rk
+    pu = np.empty(pad, np.float32)
+    pv = np.empty(pad, np.float32)
+    ru = np.empty((nr, w), np.float32)
+    rv = np.empty((nr, w), np.float32)
+    most = 0  # the most points of one row
+    for r in range(h):
+        most = max(most, first[r + 1] - first[r])
+    pi = np.empty(most, np.intp)
+    pc = np.empty(most, np.uint64)
+    pf = np.empty(most, np.bool_)
+    ju = np.empty(most, np.float32)
+    jv = np.empty(most, np.float32)
+    row_fused = _ROW_FUSED_LANES * (w // _ROW_FUSED_LANES)
+    col_fused = _COL_FUSED_LANES * (w // _COL_FUSED_LANES)
+    juu = np.empty(mids.size, np.float32)
+    juv = np.empty(mids.size, np.float32)
+    for r in range(h):
+        any_block = False
+        for b in range(nb):
+            cnt[b] += diff[r, b]
+            if cnt[b] > 0:
+                any_block = True
+        if any_block:
+            if own:
+                _sobel_row(hp, r, gub, gvb)
+                gur = gub
+                gvr = gvb
+            else:
+                gur = gu[r]
+                gvr = gv[r]
+            our = ru[r % nr]
+            ovr = rv[r % nr]
+            if w == 1:  # not filtered along a single column
+                our[0] = gur[0] * gur[0]
+                ovr[0] = gur[0] * gvr[0]
+            else:
+                du = pu[rk : rk + w]  # 1-D views from 0: the loop vectorises
+                dv = pv[rk : rk + w]
+                for q in range(w):
+                    du[q] = gur[q] * gur[q]
+                    dv[q] = gur[q] * gvr[q]
+                for q in range(rk):  # the reflected borders
+                    for d in (q, pad - 1 - q):
+                        pu[d] = pu[rk + reflect101(d - rk, w)]
+                        pv[d] = pv[rk + reflect101(d - rk, w)]
+                b = 0
+                while b < nb:
+                    if cnt[b] <= 0:
+                        b += 1
+                        continue
+                    e = b
+                    while e < nb and cnt[e] > 0:
+                        e += 1
+                    c0 = b * bs
+                    c1 = min(e * bs, w)
+                    _row_pass(pu, pv, g, our, ovr, c0, min(c1, row_fused), True)
+                    _row_pass(pu, pv, g, our, ovr, max(c0, row_fused), c1, False)
+                    b = e
+        if first[r] == first[r + 1]:
+            continue
+        if h == 1:  # not filtered along a single row
+            for k in range(first[r], first[r + 1]):
+                juu[order[k]] = ru[0, cols[order[k]]]
+                juv[order[k]] = rv[0, cols[order[k]]]
+            continue
+        # the points of row m = r - rk whose rows all lie in the image together, the others
+        # (near the top or bottom border) one by one
+        m = r - rk
+        n = 0
+        for k in range(first[r], first[r + 1]):
+            i = order[k]
+            if m - rk >= 0 and mids[i] == m:
+                pi[n] = i
+                pc[n] = np.uint64(cols[i])
+                pf[n] = cols[i] < col_fused
+                n += 1
+            else:
+                juu[i], juv[i] = _column_pass(ru, rv, g, mids[i], cols[i], h, cols[i] < col_fused)
+        if n:
+            _column_points(ru, rv, g, m % nr, pc, pf, ju, jv, n)
+            for p in range(n):
+                juu[pi[p]] = ju[p]
+                juv[pi[p]] = jv[p]
+    return juu, juv
+
+
+def _gaussian_taps(sigma: float) -> NDArray[np.float32]:
+    """The Gaussian (float32, odd length) that cv2.GaussianBlur uses on float32 data."""
+    return cv2.getGaussianKernel(round(sigma * 8 + 1) | 1, sigma, cv2.CV_32F).ravel()
+
+
+@functools.cache
+def _blur_is_opencvs() -> bool:
+    """Whether :func:`_tensor_at` gives cv2.GaussianBlur's values bit for bit here (OpenCV's
+    arithmetic as described at ``_ROW_FUSED_LANES``), on small random images whose widths
+    reach every kind of column. Checked once per process."""
+    rng = np.random.default_rng(0)
+    for h, w, sigma in ((23, 45, 2.5), (31, 21, 4.5), (9, 1, 1.5)):
+        x = rng.normal(0.0, 300.0, (h, w)).astype(np.float32)
+        mids, cols = (a.ravel() for a in np.indices((h, w)))
+        # gu^2 = x^2 and gu gv = x * 1 with gu = x and gv = 1
+        juu, juv = _tensor_at(x, x, np.ones_like(x), _gaussian_taps(sigma), mids, cols)
+        for got, p in ((juu, x * x), (juv, x)):
+            if not np.array_equal(got, cv2.GaussianBlur(p, (0, 0), sigma).ravel()):
+                return False
+    return True
+
+
+def _slopes_at(hp: NDArray, sigma: float, mids: NDArray, cols: NDArray) -> F32:
+    """:func:`stripe_slope` of ``hp`` (uint8, uint16 or float32) at the pixels (``mids``,
+    ``cols``) (K,): (K,) float32, the values of the whole image's structure tensor there."""
+    if mids.size == 0:
+        return np.empty(0, np.float32)
+    if _blur_is_opencvs():
+        if hp.dtype == np.float32:  # float sums: OpenCV's own order
+            gu = cv2.Sobel(hp, cv2.CV_32F, 1, 0, ksize=3)
+            gv = cv2.Sobel(hp, cv2.CV_32F, 0, 1, ksize=3)
+        else:
+            gu = gv = np.empty((0, 0), np.float32)
+        juu, juv = _tensor_at(hp, gu, gv, _gaussian_taps(sigma), mids, cols)
+    else:  # another OpenCV build: its own blur, over the whole image
+        tu, tv = _structure_tensor(hp, sigma)
+        juu, juv = tu[mids, cols], tv[mids, cols]
+    s = -juv / np.maximum(juu, np.float32(1e-6))
+    return np.clip(s, np.float32(-1.0), np.float32(1.0))
 
 
 #: :func:`lean_map` reads the stripes' direction on the image decimated this many times.
@@ -150,13 +436,6 @@ def lean_map(hp: NDArray, sigma: float, decimation: int = LEAN_DECIMATION) -> F3
     juu = cv2.GaussianBlur(cv2.multiply(gu, gu), (0, 0), s)
     jvv = cv2.GaussianBlur(cv2.multiply(gv, gv), (0, 0), s)
     juv2 = cv2.GaussianBlur(cv2.multiply(gu, gv, scale=2.0), (0, 0), s)
-    return _tensor_angles(juu, jvv, juv2)
-
-
-def _tensor_angles(juu: F32, jvv: F32, juv2: F32) -> F32:
-    """The stripes' direction, deg from the vertical in [-90, 90), of the structure tensor
-    (J_uu, J_vv, 2 J_uv) (same shape, float32 each); NaN where its coherence is below
-    :data:`_LEAN_COHERENCE`."""
     # the gradients lie across the stripe, at half the angle of (J_uu - J_vv, 2 J_uv) from the
     # u axis; a stripe f(u - s v) has gradients along (1, -s): it leans atan(s), minus that
     mag, phase = cv2.cartToPolar(cv2.subtract(juu, jvv), juv2, angleInDegrees=True)
@@ -165,112 +444,3 @@ def _tensor_angles(juu: F32, jvv: F32, juv2: F32) -> F32:
     incoherent = mag < cv2.add(juu, jvv) * np.float32(_LEAN_COHERENCE) + np.float32(1e-12)
     ang[incoherent] = np.nan
     return ang
-
-
-@njit(cache=True)
-def _sobel_row(hp, r, gur, gvr):
-    """Row ``r`` of cv2.Sobel's 3x3 derivatives of an integer image ``hp`` (H, W) along u and
-    v (cv2.BORDER_REFLECT_101), as float32 into ``gur``, ``gvr`` (W,): sums of integers below
-    2^24, exact in float32 in any order (so the loop runs in float32 lanes, not Numba's int64
-    ones)."""
-    h, w = hp.shape
-    ra = hp[reflect101(r - 1, h)]
-    rb = hp[r]
-    rc = hp[reflect101(r + 1, h)]
-    two = np.float32(2.0)
-    # shifted 1-D views, indices from 0: the loop vectorises
-    al, am, ar = ra[: w - 2], ra[1 : w - 1], ra[2:]
-    bl, br = rb[: w - 2], rb[2:]
-    cl, cm, cr = rc[: w - 2], rc[1 : w - 1], rc[2:]
-    ou = gur[1 : w - 1]
-    ov = gvr[1 : w - 1]
-    for q in range(w - 2):
-        a0, a1, a2 = np.float32(al[q]), np.float32(am[q]), np.float32(ar[q])
-        b0, b2 = np.float32(bl[q]), np.float32(br[q])
-        c0, c1, c2 = np.float32(cl[q]), np.float32(cm[q]), np.float32(cr[q])
-        ou[q] = (a2 - a0) + two * (b2 - b0) + (c2 - c0)
-        ov[q] = (c0 + two * c1 + c2) - (a0 + two * a1 + a2)
-    for c in (0, w - 1):  # the reflected borders
-        cl = reflect101(c - 1, w)
-        cr = reflect101(c + 1, w)
-        a0, a1, a2 = np.float32(ra[cl]), np.float32(ra[c]), np.float32(ra[cr])
-        b0, b2 = np.float32(rb[cl]), np.float32(rb[cr])
-        c0, c1, c2 = np.float32(rc[cl]), np.float32(rc[c]), np.float32(rc[cr])
-        gur[c] = (a2 - a0) + two * (b2 - b0) + (c2 - c0)
-        gvr[c] = (c0 + two * c1 + c2) - (a0 + two * a1 + a2)
-
-
-@njit(cache=True)
-def cell_tensor(img, ch, cw, f):
-    """(ch, cw, 3) float32: per cell of ``f`` x ``f`` px of ``img`` (H, W) (the last cells
-    take the remainder), the means of gu^2, gv^2 and 2 gu gv of its 3 x 3 Sobel derivatives
-    (the image's border pixels left out). Row by row: the derivatives of a row
-    (:func:`_sobel_row`), added to the sums of its row of cells column by column (both loops
-    vectorise); the columns' sums are summed into the cells once per row of cells."""
-    h, w = img.shape
-    out = np.zeros((ch, cw, 3), np.float32)
-    su = np.zeros(w, np.float32)
-    sv = np.zeros(w, np.float32)
-    suv = np.zeros(w, np.float32)
-    # the columns 1 .. W - 2 of each cell: [lo, hi)
-    lo = np.empty(cw, np.intp)
-    hi = np.empty(cw, np.intp)
-    for k in range(cw):
-        lo[k] = max(k * f, 1)
-        hi[k] = w - 1 if k == cw - 1 else min((k + 1) * f, w - 1)
-    gu = np.zeros(w, np.float32)
-    gv = np.zeros(w, np.float32)
-    two = np.float32(2.0)
-    rows = 0
-    for i in range(1, h - 1):
-        _sobel_row(img, i, gu, gv)
-        for j in range(1, w - 1):
-            su[j] += gu[j] * gu[j]
-            sv[j] += gv[j] * gv[j]
-            suv[j] += two * gu[j] * gv[j]
-        rows += 1
-        ci = min(i // f, ch - 1)
-        if i == h - 2 or min((i + 1) // f, ch - 1) != ci:  # the row of cells is complete
-            row = out[ci]
-            for k in range(cw):
-                tu = np.float32(0.0)
-                tv = np.float32(0.0)
-                tuv = np.float32(0.0)
-                for j in range(lo[k], hi[k]):
-                    tu += su[j]
-                    tv += sv[j]
-                    tuv += suv[j]
-                m = np.float32(max(rows * (hi[k] - lo[k]), 1))
-                row[k, 0] = tu / m
-                row[k, 1] = tv / m
-                row[k, 2] = tuv / m
-            su[:] = 0.0
-            sv[:] = 0.0
-            suv[:] = 0.0
-            rows = 0
-    return out
-
-
-@njit(cache=True)
-def tensor_slopes(tensor, coherence, min_slope, none):
-    """(ch, cw) float32, px per row, the lean of the stripes from ``tensor`` (ch, cw, 3)
-    float32 (J_uu, J_vv, 2 J_uv): the gradients lie across the stripe at theta from the u
-    axis, tan 2 theta = 2 J_uv / (J_uu - J_vv), and a stripe f(u - t v) has gradients along
-    (1, -t), so t = -tan theta, clipped to +-1; ``none`` where the coherence
-    ((l1 - l2) / (l1 + l2) of the eigenvalues) is below ``coherence``, 0 where |t| is below
-    ``min_slope``."""
-    ch, cw = tensor.shape[0], tensor.shape[1]
-    out = np.full((ch, cw), none, np.float32)
-    for i in range(ch):
-        for j in range(cw):
-            juu, jvv, juv2 = tensor[i, j, 0], tensor[i, j, 1], tensor[i, j, 2]
-            diff = juu - jvv
-            mag = np.sqrt(diff * diff + juv2 * juv2)
-            if not mag >= coherence * (juu + jvv) + 1e-12:
-                continue
-            # tan theta = sin 2 theta / (1 + cos 2 theta) = 2 J_uv / (J_uu - J_vv + mag)
-            den = diff + mag
-            t = -juv2 / den if den > 0 else (-1.0 if juv2 > 0 else 1.0)
-            t = min(max(t, -1.0), 1.0)
-            out[i, j] = t if abs(t) >= min_slope else 0.0
-    return out
