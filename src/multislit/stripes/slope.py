@@ -80,6 +80,20 @@ _COL_FUSED_LANES = 8
 _TENSOR_BLOCK = 8
 
 
+@njit(cache=True, inline="always")
+def _fma8(p, x, g0, g1, g2, g3, g4, g5, g6, g7, acc):
+    """``acc`` plus the taps ``g0`` .. ``g7`` times ``p[x]`` .. ``p[x + 7]``, summed in order,
+    each a fused multiply-add rounded to float32 (``x`` unsigned: no wraparound test)."""
+    acc = _fma32(p[x], g0, acc)
+    acc = _fma32(p[x + np.uint64(1)], g1, acc)
+    acc = _fma32(p[x + np.uint64(2)], g2, acc)
+    acc = _fma32(p[x + np.uint64(3)], g3, acc)
+    acc = _fma32(p[x + np.uint64(4)], g4, acc)
+    acc = _fma32(p[x + np.uint64(5)], g5, acc)
+    acc = _fma32(p[x + np.uint64(6)], g6, acc)
+    return _fma32(p[x + np.uint64(7)], g7, acc)
+
+
 @njit(cache=True)
 def _row_pass(pu, pv, g, ou, ov, c0, c1, fused):
     """Row pass of the Gaussian ``g`` for columns ``c0`` .. ``c1 - 1`` of one row: ``ou``,
@@ -101,22 +115,8 @@ def _row_pass(pu, pv, g, ou, ov, c0, c1, fused):
             for c in range(c0, c1):
                 q = np.uint64(c)
                 x = np.uint64(c + j)
-                a = _fma32(pu[x], g0, ou[q])
-                a = _fma32(pu[x + np.uint64(1)], g1, a)
-                a = _fma32(pu[x + np.uint64(2)], g2, a)
-                a = _fma32(pu[x + np.uint64(3)], g3, a)
-                a = _fma32(pu[x + np.uint64(4)], g4, a)
-                a = _fma32(pu[x + np.uint64(5)], g5, a)
-                a = _fma32(pu[x + np.uint64(6)], g6, a)
-                ou[q] = _fma32(pu[x + np.uint64(7)], g7, a)
-                b = _fma32(pv[x], g0, ov[q])
-                b = _fma32(pv[x + np.uint64(1)], g1, b)
-                b = _fma32(pv[x + np.uint64(2)], g2, b)
-                b = _fma32(pv[x + np.uint64(3)], g3, b)
-                b = _fma32(pv[x + np.uint64(4)], g4, b)
-                b = _fma32(pv[x + np.uint64(5)], g5, b)
-                b = _fma32(pv[x + np.uint64(6)], g6, b)
-                ov[q] = _fma32(pv[x + np.uint64(7)], g7, b)
+                ou[q] = _fma8(pu, x, g0, g1, g2, g3, g4, g5, g6, g7, ou[q])
+                ov[q] = _fma8(pv, x, g0, g1, g2, g3, g4, g5, g6, g7, ov[q])
             j += 8
     while j < g.size:
         gj = g[j]
