@@ -28,6 +28,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from multislit.stripes.sizes import FWHM_PER_SIGMA
+from multislit.stripes.slope import _sobel_row
 from multislit.stripes.slope import reflect101 as reflect
 
 F32 = NDArray[np.float32]
@@ -114,38 +115,24 @@ def _cell_tensor(img, ch, cw, f):
     """(ch, cw, 3) float32: per cell of ``f`` x ``f`` px of ``img`` (H, W) (the last cells
     take the remainder), the means of gu^2, gv^2 and 2 gu gv of its 3 x 3 Sobel derivatives
     (the image's border pixels left out). Row by row: the derivatives of a row in one pass
-    (the loop vectorises), then summed into its cells."""
+    (:func:`~multislit.stripes.slope._sobel_row`), then summed into its cells."""
     h, w = img.shape
     out = np.zeros((ch, cw, 3), np.float32)
     count = np.zeros((ch, cw), np.float32)
     cell = np.empty(w, np.intp)
     for j in range(w):
         cell[j] = min(j // f, cw - 1)
+    gu = np.zeros(w, np.float32)
+    gv = np.zeros(w, np.float32)
     uu = np.zeros(w, np.float32)
     vv = np.zeros(w, np.float32)
     uv = np.zeros(w, np.float32)
     for i in range(1, h - 1):
-        a = img[i - 1]
-        b = img[i]
-        c = img[i + 1]
+        _sobel_row(img, i, gu, gv)
         for j in range(1, w - 1):
-            gu = (
-                np.float32(a[j + 1])
-                - np.float32(a[j - 1])
-                + 2 * (np.float32(b[j + 1]) - np.float32(b[j - 1]))
-                + np.float32(c[j + 1])
-                - np.float32(c[j - 1])
-            )
-            gv = (
-                np.float32(c[j - 1])
-                - np.float32(a[j - 1])
-                + 2 * (np.float32(c[j]) - np.float32(a[j]))
-                + np.float32(c[j + 1])
-                - np.float32(a[j + 1])
-            )
-            uu[j] = gu * gu
-            vv[j] = gv * gv
-            uv[j] = 2 * gu * gv
+            uu[j] = gu[j] * gu[j]
+            vv[j] = gv[j] * gv[j]
+            uv[j] = 2 * gu[j] * gv[j]
         ci = min(i // f, ch - 1)
         row = out[ci]
         for j in range(1, w - 1):
